@@ -1,0 +1,34 @@
+SHELL := /bin/bash
+PYTHON ?= python3.11
+VENV := .venv
+PY := $(VENV)/bin/python
+STAMP := $(VENV)/.installed
+
+.DEFAULT_GOAL := help
+.PHONY: help setup test test-full lint
+
+help:  ## list the targets
+	@grep -E '^[a-z-]+:.*##' $(MAKEFILE_LIST) | awk -F':.*## ' '{printf "  make %-10s %s\n", $$1, $$2}'
+
+$(PY):
+	$(PYTHON) -m venv $(VENV)
+
+# Re-install only when the dependency list changes; torch is pinned first so pip takes the
+# CPU wheel available on the machine instead of a multi-GB CUDA build.
+$(STAMP): pyproject.toml scripts/ensure_system_deps.sh | $(PY)
+	bash scripts/ensure_system_deps.sh
+	$(PY) -m pip install --quiet --upgrade pip
+	$(PY) -m pip install --quiet torch==2.13.0
+	$(PY) -m pip install --quiet -e '.[dev,baselines]'
+	touch $(STAMP)
+
+setup: $(STAMP)  ## create .venv and install everything (idempotent)
+
+test: setup  ## run the test suite (skips tests marked slow)
+	$(PY) -m pytest
+
+test-full: setup  ## run every test, the slow ones included
+	$(PY) -m pytest -m ''
+
+lint: setup  ## ruff
+	$(VENV)/bin/ruff check .

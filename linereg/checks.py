@@ -1,0 +1,94 @@
+"""Input validation shared by every layer (one home for the error wording).
+
+Public entry points check type first (``TypeError``), then shape and values (``ValueError``);
+every message names the argument and gives the expected and the actual value.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+ArrayLike = torch.Tensor | np.ndarray
+
+
+def check_points(
+    points: ArrayLike,
+    name: str = "points",
+    *,
+    min_points: int = 1,
+    batched: bool | None = None,
+    dim: int = 3,
+) -> None:
+    """Check that ``points`` is a finite point cloud of shape ``(N, dim)`` or ``(B, N, dim)``.
+
+    Args:
+        points: tensor or array of shape ``(N, dim)`` or ``(B, N, dim)``.
+        name: argument name used in error messages.
+        min_points: smallest acceptable ``N``.
+        batched: ``True`` requires ``(B, N, dim)``, ``False`` requires ``(N, dim)``,
+            ``None`` accepts both.
+        dim: size of the last axis.
+
+    Raises:
+        TypeError: not a tensor/array, or not a floating-point dtype.
+        ValueError: wrong shape, fewer than ``min_points`` points, or NaN/Inf coordinates.
+    """
+    if not isinstance(points, torch.Tensor | np.ndarray):
+        raise TypeError(f"{name} must be a torch.Tensor or numpy array, got {type(points).__name__}")
+    is_float = (
+        points.is_floating_point()
+        if isinstance(points, torch.Tensor)
+        else np.issubdtype(points.dtype, np.floating)
+    )
+    if not is_float:
+        raise TypeError(f"{name} must have a floating-point dtype, got {points.dtype}")
+    allowed = {True: (3,), False: (2,), None: (2, 3)}[batched]
+    shape = tuple(points.shape)
+    if points.ndim not in allowed or shape[-1] != dim:
+        expected = " or ".join({2: f"(N, {dim})", 3: f"(B, N, {dim})"}[n] for n in allowed)
+        raise ValueError(f"{name} must have shape {expected}, got {shape}")
+    if shape[-2] < min_points:
+        raise ValueError(f"{name} must hold at least {min_points} point(s), got {shape[-2]}")
+    finite = torch.isfinite(points).all() if isinstance(points, torch.Tensor) else np.isfinite(points).all()
+    if not bool(finite):
+        raise ValueError(f"{name} contains NaN or Inf coordinates")
+
+
+def check_transform(transform: ArrayLike, name: str = "transform", *, rigid_atol: float | None = None) -> None:
+    """Check that ``transform`` holds homogeneous 4x4 matrices of shape ``(..., 4, 4)``.
+
+    Args:
+        transform: tensor or array of shape ``(..., 4, 4)``.
+        name: argument name used in error messages.
+        rigid_atol: when given, also require ``R^T R = I``, ``det R = +1`` and a last row of
+            ``[0, 0, 0, 1]`` within this absolute tolerance.
+
+    Raises:
+        TypeError: not a tensor/array.
+        ValueError: wrong shape, non-finite entries, or (with ``rigid_atol``) not rigid.
+    """
+    if not isinstance(transform, torch.Tensor | np.ndarray):
+        raise TypeError(f"{name} must be a torch.Tensor or numpy array, got {type(transform).__name__}")
+    if transform.ndim < 2 or tuple(transform.shape[-2:]) != (4, 4):
+        raise ValueError(f"{name} must have shape (..., 4, 4), got {tuple(transform.shape)}")
+    matrix = transform.detach().cpu().double().numpy() if isinstance(transform, torch.Tensor) else np.asarray(transform, dtype=np.float64)
+    if not np.isfinite(matrix).all():
+        raise ValueError(f"{name} contains NaN or Inf entries")
+    if rigid_atol is None:
+        return
+    rot = matrix[..., :3, :3]
+    orth_err = np.abs(np.swapaxes(rot, -1, -2) @ rot - np.eye(3)).max()
+    det = np.linalg.det(rot)
+    last_row_err = np.abs(matrix[..., 3, :] - np.array([0.0, 0.0, 0.0, 1.0])).max()
+    if orth_err > rigid_atol or np.abs(det - 1.0).max() > rigid_atol or last_row_err > rigid_atol:
+        raise ValueError(
+            f"{name} is not a rigid transform: max |R^T R - I| = {orth_err:.2e}, "
+            f"det R = {np.ravel(det)[:4]}, last-row error {last_row_err:.2e} (tolerance {rigid_atol})"
+        )
+
+
+def check_same_batch(a: ArrayLike, b: ArrayLike, name_a: str, name_b: str) -> None:
+    """Raise ``ValueError`` unless two batched tensors share their leading batch size."""
+    if a.shape[0] != b.shape[0]:
+        raise ValueError(f"{name_a} and {name_b} must share the batch size, got {a.shape[0]} and {b.shape[0]}")

@@ -1,0 +1,147 @@
+"""Loss base classes and the loss registry.
+
+Every loss maps ``(RegistrationOutput, PairBatch) -> LossOutput``. A loss declares
+``needs_gt``; the base class hands an unsupervised loss a copy of the batch *without*
+``gt_transform``, so it cannot read ground truth even by mistake.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import torch
+from torch import nn
+
+from linereg.registry import Registry
+from linereg.se3 import transform_points
+from linereg.structures import LossOutput, PairBatch, RegistrationOutput
+
+LOSSES: Registry[Loss] = Registry("loss")
+
+
+class Loss(nn.Module):
+    """Base class: subclasses implement :meth:`compute` and set ``needs_gt``."""
+
+    needs_gt: bool = False
+
+    def forward(self, output: RegistrationOutput, batch: PairBatch) -> LossOutput:
+        if not self.needs_gt:
+            batch = batch.without_ground_truth()
+        elif batch.gt_transform is None:
+            raise ValueError(f"{type(self).__name__} is supervised and needs batch.gt_transform, which is missing")
+        return self.compute(output, batch)
+
+    def compute(self, output: RegistrationOutput, batch: PairBatch) -> LossOutput:
+        raise NotImplementedError
+
+
+def iteration_weights(num_iterations: int, discount: float = 0.5, last_k: int | None = None) -> list[float]:
+    """Per-iteration weights ``discount ** (n - 1 - i)``, zero outside the last ``last_k`` iterations.
+
+    RPM-Net weighs iteration ``i`` of ``n`` by ``0.5 ** (n - 1 - i)``; the paper's FMR training
+    uses the last 3 iterates with the same discount. ``discount=0`` keeps only the last one.
+    """
+    first = 0 if last_k is None else max(0, num_iterations - last_k)
+    return [0.0 if i < first else (1.0 if i == num_iterations - 1 else discount ** (num_iterations - 1 - i)) for i in range(num_iterations)]
+
+
+class AlignmentLoss(Loss):
+    """A correspondence-free metric between the transformed source and the target.
+
+    Applied to each iteration's estimate ``T_i`` as ``metric(T_i @ src, tgt)`` and combined with
+    :func:`iteration_weights`. Subclasses implement :meth:`metric`.
+
+    Args:
+        discount: per-iteration discount (see :func:`iteration_weights`).
+        last_k: only the last ``last_k`` iterations contribute (``None``: all).
+        normalize_iterations: divide by the number of iterations (the paper repo's RPM-Net).
+    """
+
+    needs_gt = False
+
+    def __init__(self, discount: float = 0.5, last_k: int | None = None, normalize_iterations: bool = False) -> None:
+        super().__init__()
+        self.discount = discount
+        self.last_k = last_k
+        self.normalize_iterations = normalize_iterations
+
+    def metric(
+        self,
+        src: torch.Tensor,
+        tgt: torch.Tensor,
+        src_lengths: torch.Tensor | None = None,
+        tgt_lengths: torch.Tensor | None = None,
+    ) -> tuple[torch.Tensor, dict[str, float]]:
+        """Per-sample metric ``(B,)`` between ``src (B, N, 3)`` and ``tgt (B, M, 3)``, plus stats."""
+        raise NotImplementedError
+
+    def compute(self, output: RegistrationOutput, batch: PairBatch) -> LossOutput:
+        weights = iteration_weights(len(output.transforms), self.discount, self.last_k)
+        total = batch.src_xyz.new_zeros(())
+        stats: dict[str, float] = {}
+        for weight, transform in zip(weights, output.transforms, strict=True):
+            if weight == 0.0:
+                continue
+            moved = transform_points(transform.to(batch.src_xyz.dtype), batch.src_xyz)
+            value, stats = self.metric(moved, batch.tgt_xyz, batch.src_lengths, batch.tgt_lengths)
+            total = total + weight * value.mean()
+        if self.normalize_iterations:
+            total = total / len(output.transforms)
+        return LossOutput(total=total, terms={"alignment": total}, stats=stats)
+
+
+class WeightedSum(Loss):
+    """Weighted sum of named losses, e.g. RPM-Net's outlier regulariser + the line loss.
+
+    Args:
+        terms: mapping ``name -> (weight, loss)``.
+    """
+
+    def __init__(self, terms: dict[str, tuple[float, Loss]]) -> None:
+        super().__init__()
+        self.weights = {name: float(w) for name, (w, _) in terms.items()}
+        self.parts = nn.ModuleDict({name: loss for name, (_, loss) in terms.items()})
+        self.needs_gt = any(loss.needs_gt for loss in self.parts.values())
+
+    def forward(self, output: RegistrationOutput, batch: PairBatch) -> LossOutput:
+        # Each part applies its own ground-truth guard.
+        total = batch.src_xyz.new_zeros(())
+        terms: dict[str, torch.Tensor] = {}
+        stats: dict[str, float] = {}
+        for name, loss in self.parts.items():
+            part = loss(output, batch)
+            weighted = self.weights[name] * part.total
+            total = total + weighted
+            terms[name] = weighted
+            stats.update({f"{name}/{k}": v for k, v in part.stats.items()})
+        return LossOutput(total=total, terms=terms, stats=stats)
+
+
+def build_loss(config: dict[str, Any] | Any) -> Loss:
+    """Build a loss from a config mapping.
+
+    Either ``{name: <registered name>, **kwargs}`` or a composite
+    ``{terms: {label: {name: ..., weight: w, **kwargs}, ...}}``. Unknown names raise a
+    ``KeyError`` that lists the registered losses; unknown keyword arguments raise ``TypeError``
+    naming the loss.
+    """
+    config = dict(config)
+    if "terms" in config:
+        extra = set(config) - {"terms"}
+        if extra:
+            raise TypeError(f"a composite loss config takes only 'terms', got extra keys {sorted(extra)}")
+        parts = {}
+        for label, sub in dict(config["terms"]).items():
+            sub = dict(sub)
+            weight = float(sub.pop("weight", 1.0))
+            parts[label] = (weight, build_loss(sub))
+        return WeightedSum(parts)
+    if "name" not in config:
+        raise KeyError(f"a loss config needs a 'name' (one of {', '.join(LOSSES.names())}) or 'terms'")
+    name = config.pop("name")
+    config.pop("weight", None)
+    builder = LOSSES.get(name)
+    try:
+        return builder(**config)
+    except TypeError as err:
+        raise TypeError(f"loss {name!r}: {err}") from err

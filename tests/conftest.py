@@ -1,0 +1,18 @@
+"""Shared pytest fixtures."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from linereg.paths import shared_data_dir
+
+
+@pytest.fixture(scope="session")
+def shared_data() -> Path:
+    """The shared real-data folder; skips the test when it is absent (a user's fresh clone)."""
+    path = shared_data_dir()
+    if path is None:
+        pytest.skip("shared data not found: set $LINEREG_SHARED_DATA or place it at ../shared/data")
+    return path

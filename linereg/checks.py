@@ -37,9 +37,7 @@ def check_points(
     if not isinstance(points, torch.Tensor | np.ndarray):
         raise TypeError(f"{name} must be a torch.Tensor or numpy array, got {type(points).__name__}")
     is_float = (
-        points.is_floating_point()
-        if isinstance(points, torch.Tensor)
-        else np.issubdtype(points.dtype, np.floating)
+        points.is_floating_point() if isinstance(points, torch.Tensor) else np.issubdtype(points.dtype, np.floating)
     )
     if not is_float:
         raise TypeError(f"{name} must have a floating-point dtype, got {points.dtype}")
@@ -55,6 +53,22 @@ def check_points(
         raise ValueError(f"{name} contains NaN or Inf coordinates")
 
 
+def check_shape(value: torch.Tensor, name: str, trailing: tuple[int, ...]) -> None:
+    """Check that ``value`` is a floating-point tensor whose shape ends in ``trailing``.
+
+    Raises:
+        TypeError: not a tensor, or not a floating-point dtype.
+        ValueError: the trailing dimensions differ from ``trailing``.
+    """
+    if not isinstance(value, torch.Tensor):
+        raise TypeError(f"{name} must be a torch.Tensor, got {type(value).__name__}")
+    if not value.is_floating_point():
+        raise TypeError(f"{name} must have a floating-point dtype, got {value.dtype}")
+    if value.ndim < len(trailing) or tuple(value.shape[value.ndim - len(trailing) :]) != trailing:
+        expected = "(..., " + ", ".join(str(size) for size in trailing) + ")"
+        raise ValueError(f"{name} must have shape {expected}, got {tuple(value.shape)}")
+
+
 def check_transform(transform: ArrayLike, name: str = "transform", *, rigid_atol: float | None = None) -> None:
     """Check that ``transform`` holds homogeneous 4x4 matrices of shape ``(..., 4, 4)``.
 
@@ -65,14 +79,25 @@ def check_transform(transform: ArrayLike, name: str = "transform", *, rigid_atol
             ``[0, 0, 0, 1]`` within this absolute tolerance.
 
     Raises:
-        TypeError: not a tensor/array.
+        TypeError: not a tensor/array, or not a floating-point dtype.
         ValueError: wrong shape, non-finite entries, or (with ``rigid_atol``) not rigid.
     """
     if not isinstance(transform, torch.Tensor | np.ndarray):
         raise TypeError(f"{name} must be a torch.Tensor or numpy array, got {type(transform).__name__}")
+    is_float = (
+        transform.is_floating_point()
+        if isinstance(transform, torch.Tensor)
+        else np.issubdtype(transform.dtype, np.floating)
+    )
+    if not is_float:
+        raise TypeError(f"{name} must have a floating-point dtype, got {transform.dtype}")
     if transform.ndim < 2 or tuple(transform.shape[-2:]) != (4, 4):
         raise ValueError(f"{name} must have shape (..., 4, 4), got {tuple(transform.shape)}")
-    matrix = transform.detach().cpu().double().numpy() if isinstance(transform, torch.Tensor) else np.asarray(transform, dtype=np.float64)
+    matrix = (
+        transform.detach().cpu().double().numpy()
+        if isinstance(transform, torch.Tensor)
+        else np.asarray(transform, dtype=np.float64)
+    )
     if not np.isfinite(matrix).all():
         raise ValueError(f"{name} contains NaN or Inf entries")
     if rigid_atol is None:

@@ -70,7 +70,11 @@ class PairBatch:
     def to(self, device: torch.device | str) -> PairBatch:
         """A copy with every tensor moved to ``device``."""
         moved = {
-            f.name: (getattr(self, f.name).to(device) if isinstance(getattr(self, f.name), torch.Tensor) else getattr(self, f.name))
+            f.name: (
+                getattr(self, f.name).to(device)
+                if isinstance(getattr(self, f.name), torch.Tensor)
+                else getattr(self, f.name)
+            )
             for f in fields(self)
         }
         return PairBatch(**moved)

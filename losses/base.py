@@ -42,7 +42,10 @@ def iteration_weights(num_iterations: int, discount: float = 0.5, last_k: int | 
     uses the last 3 iterates with the same discount. ``discount=0`` keeps only the last one.
     """
     first = 0 if last_k is None else max(0, num_iterations - last_k)
-    return [0.0 if i < first else (1.0 if i == num_iterations - 1 else discount ** (num_iterations - 1 - i)) for i in range(num_iterations)]
+    return [
+        0.0 if i < first else (1.0 if i == num_iterations - 1 else discount ** (num_iterations - 1 - i))
+        for i in range(num_iterations)
+    ]
 
 
 class AlignmentLoss(Loss):

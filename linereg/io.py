@@ -1,0 +1,369 @@
+"""Point-cloud, mesh and transform files.
+
+Readers return float32 ``(N, 3)`` coordinates (and normals when the file has them) and raise
+with the file name in every message. Formats:
+
+* ``.ply`` (ascii or binary; ``nx ny nz`` vertex properties become normals), parsed by
+  trimesh's numpy PLY reader: it is already a dependency, it is fast, and it rejects truncated
+  or malformed files, where Open3D 0.20 warns on stdout and returns zero-filled points;
+* ``.pcd`` through Open3D (imported lazily, it takes seconds to import);
+* ``.obj`` ``v`` lines (``vn`` lines become normals when there is one per vertex);
+* ``.xyz`` / ``.txt`` / ``.pts`` text with 3 or 6 columns separated by whitespace or commas
+  (ModelNet's ``x,y,z,nx,ny,nz``);
+* ``.npy`` arrays ``(N, 3)`` or ``(N, 6)`` and ``.npz`` archives with a key ``xyz``,
+  ``points`` or ``pos`` (and optionally ``normals``).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import NamedTuple
+
+import numpy as np
+
+from linereg.checks import check_points, check_transform
+
+POINT_CLOUD_SUFFIXES = (".ply", ".pcd", ".obj", ".xyz", ".txt", ".pts", ".npy", ".npz")
+MESH_SUFFIXES = (".off", ".obj", ".ply", ".stl")
+_TEXT_SUFFIXES = (".xyz", ".txt", ".pts")
+_NPZ_POINT_KEYS = ("xyz", "points", "pos")
+
+
+class PointCloud(NamedTuple):
+    """A point cloud read from a file.
+
+    Attributes:
+        xyz: float32 array of shape ``(N, 3)`` giving the coordinates.
+        normals: float32 array of shape ``(N, 3)`` giving per-point normals, or ``None`` when
+            the file has none.
+    """
+
+    xyz: np.ndarray
+    normals: np.ndarray | None
+
+
+def read_point_cloud(path: str | Path, *, min_points: int = 1) -> PointCloud:
+    """Read a point cloud (see the module docstring for the formats).
+
+    Args:
+        path: file to read.
+        min_points: fewest points accepted.
+
+    Returns:
+        :class:`PointCloud` with float32 ``xyz`` and ``normals`` (or ``None``).
+
+    Raises:
+        FileNotFoundError: the file does not exist.
+        ValueError: unsupported extension, unreadable or malformed content, no points, fewer
+            than ``min_points`` points, or NaN/Inf values; the message names the file.
+    """
+    path = _existing_file(path)
+    suffix = path.suffix.lower()
+    readers = {
+        ".ply": _read_ply,
+        ".pcd": _read_pcd,
+        ".obj": _read_obj,
+        ".npy": _read_npy,
+        ".npz": _read_npz,
+    }
+    reader = _read_text if suffix in _TEXT_SUFFIXES else readers.get(suffix)
+    if reader is None:
+        raise ValueError(
+            f"{path}: unsupported point-cloud extension {path.suffix!r}; "
+            f"supported: {', '.join(POINT_CLOUD_SUFFIXES)}"
+        )
+    try:
+        xyz, normals = reader(path)
+        xyz = np.asarray(xyz, dtype=np.float32)
+        normals = None if normals is None else np.asarray(normals, dtype=np.float32)
+    except (OSError, ValueError, TypeError, KeyError, IndexError, EOFError) as error:
+        raise ValueError(f"{path}: cannot read point cloud: {error}") from error
+    return _validated(path, xyz, normals, min_points)
+
+
+def _existing_file(path: str | Path) -> Path:
+    """``path`` as a Path, or FileNotFoundError naming it."""
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: no such file")
+    return path
+
+
+def _validated(
+    path: Path, xyz: np.ndarray, normals: np.ndarray | None, min_points: int
+) -> PointCloud:
+    """Check shapes, size and finiteness of what a reader returned."""
+    if xyz.ndim != 2 or xyz.shape[1] != 3:
+        raise ValueError(f"{path}: expected (N, 3) coordinates, got shape {xyz.shape}")
+    if xyz.shape[0] == 0:
+        raise ValueError(f"{path}: the file contains no points")
+    if xyz.shape[0] < min_points:
+        raise ValueError(f"{path}: expected at least {min_points} points, got {xyz.shape[0]}")
+    if not np.isfinite(xyz).all():
+        raise ValueError(f"{path}: coordinates contain NaN or Inf")
+    if normals is not None:
+        if normals.shape != xyz.shape:
+            raise ValueError(f"{path}: normals have shape {normals.shape}, points {xyz.shape}")
+        if not np.isfinite(normals).all():
+            raise ValueError(f"{path}: normals contain NaN or Inf")
+    return PointCloud(xyz, normals)
+
+
+def _read_ply(path: Path) -> tuple[np.ndarray, np.ndarray | None]:
+    """Vertices (and normals) of an ascii or binary PLY file."""
+    from trimesh.exchange.ply import load_ply
+
+    with path.open("rb") as stream:
+        loaded = load_ply(stream)
+    vertex = loaded["metadata"]["_ply_raw"].get("vertex")
+    if vertex is None:
+        raise ValueError("no 'vertex' element in the PLY header")
+    names = tuple(vertex["properties"])
+    if not {"x", "y", "z"} <= set(names):
+        raise ValueError(f"vertex properties {names} lack x, y, z")
+    data = vertex["data"]
+    xyz = np.column_stack([np.asarray(data[name], dtype=np.float32) for name in "xyz"])
+    normals = None
+    if {"nx", "ny", "nz"} <= set(names):
+        normals = np.column_stack(
+            [np.asarray(data[name], dtype=np.float32) for name in ("nx", "ny", "nz")]
+        )
+    return xyz.reshape(-1, 3), normals
+
+
+def _read_pcd(path: Path) -> tuple[np.ndarray, np.ndarray | None]:
+    """Points (and normals) of a PCD file, through Open3D."""
+    import open3d as o3d
+
+    cloud = o3d.io.read_point_cloud(str(path), format="pcd")
+    if not cloud.has_points():
+        raise ValueError("Open3D read no points (empty or malformed PCD)")
+    normals = np.asarray(cloud.normals) if cloud.has_normals() else None
+    return np.asarray(cloud.points), normals
+
+
+def _read_obj(path: Path) -> tuple[np.ndarray, np.ndarray | None]:
+    """``v`` (and matching ``vn``) lines of a Wavefront OBJ file."""
+    vertices, normals = [], []
+    with path.open("r", encoding="utf-8", errors="replace") as stream:
+        for line in stream:
+            if line.startswith("v "):
+                vertices.append(line.split()[1:4])
+            elif line.startswith("vn "):
+                normals.append(line.split()[1:4])
+    xyz = np.array(vertices, dtype=np.float32).reshape(-1, 3)
+    if normals and len(normals) == len(vertices):
+        return xyz, np.array(normals, dtype=np.float32).reshape(-1, 3)
+    return xyz, None
+
+
+def _read_text(path: Path) -> tuple[np.ndarray, np.ndarray | None]:
+    """Rows of 3 (xyz) or 6 (xyz + normals) numbers separated by whitespace or commas."""
+    with path.open("r", encoding="utf-8") as stream:
+        lines = [line.replace(",", " ") for line in stream if line.split("#", 1)[0].strip()]
+    if not lines:
+        return np.empty((0, 3)), None
+    return _split_columns(np.loadtxt(lines, dtype=np.float64, ndmin=2))
+
+
+def _split_columns(values: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
+    """Split an ``(N, 3)`` or ``(N, 6)`` array into coordinates and normals."""
+    if values.ndim != 2 or values.shape[1] not in (3, 6):
+        raise ValueError(f"expected 3 or 6 columns (x y z [nx ny nz]), got shape {values.shape}")
+    return values[:, :3], (values[:, 3:] if values.shape[1] == 6 else None)
+
+
+def _read_npy(path: Path) -> tuple[np.ndarray, np.ndarray | None]:
+    """An ``(N, 3)`` or ``(N, 6)`` numpy array."""
+    return _split_columns(np.load(path, allow_pickle=False))
+
+
+def _read_npz(path: Path) -> tuple[np.ndarray, np.ndarray | None]:
+    """A numpy archive with a point key (``xyz``, ``points`` or ``pos``) and maybe ``normals``."""
+    with np.load(path, allow_pickle=False) as archive:
+        key = next((name for name in _NPZ_POINT_KEYS if name in archive.files), None)
+        if key is None:
+            raise ValueError(
+                f"no point array: expected one of the keys {_NPZ_POINT_KEYS}, "
+                f"found {archive.files}"
+            )
+        normals = archive["normals"] if "normals" in archive.files else None
+        return archive[key], normals
+
+
+def write_point_cloud(path: str | Path, xyz: np.ndarray, normals: np.ndarray | None = None) -> None:
+    """Write a point cloud, creating parent folders; the format follows the extension.
+
+    ``.ply`` is binary little-endian float32; ``.npy`` holds ``(N, 3)`` or ``(N, 6)``
+    (normals appended); ``.txt`` is comma-separated (ModelNet style), ``.xyz``/``.pts``
+    space-separated; ``.pcd`` is binary; ``.obj`` has ``v`` (and ``vn``) lines; ``.npz`` has the
+    keys ``xyz`` (and ``normals``). Everything written reads back with :func:`read_point_cloud`.
+
+    Args:
+        path: destination file.
+        xyz: array of shape ``(N, 3)`` giving the coordinates.
+        normals: optional array of shape ``(N, 3)``.
+    """
+    path = Path(path)
+    check_points(xyz, "xyz", batched=False)
+    xyz = np.asarray(xyz, dtype=np.float32)
+    if normals is not None:
+        check_points(normals, "normals", batched=False)
+        if normals.shape != xyz.shape:
+            raise ValueError(
+                f"normals must have the shape of xyz {xyz.shape}, got {tuple(normals.shape)}"
+            )
+        normals = np.asarray(normals, dtype=np.float32)
+    suffix = path.suffix.lower()
+    if suffix not in POINT_CLOUD_SUFFIXES:
+        raise ValueError(
+            f"{path}: unsupported point-cloud extension {path.suffix!r}; "
+            f"supported: {', '.join(POINT_CLOUD_SUFFIXES)}"
+        )
+    path.parent.mkdir(parents=True, exist_ok=True)
+    columns = xyz if normals is None else np.hstack([xyz, normals])
+    if suffix == ".ply":
+        _write_ply(path, columns)
+    elif suffix == ".pcd":
+        _write_pcd(path, columns)
+    elif suffix == ".obj":
+        _write_obj(path, xyz, normals)
+    elif suffix == ".npy":
+        np.save(path, columns)
+    elif suffix == ".npz":
+        arrays = {"xyz": xyz} if normals is None else {"xyz": xyz, "normals": normals}
+        np.savez(path, **arrays)
+    else:
+        np.savetxt(path, columns, fmt="%.9g", delimiter="," if suffix == ".txt" else " ")
+
+
+def _write_ply(path: Path, columns: np.ndarray) -> None:
+    """Binary little-endian PLY with float32 ``x y z [nx ny nz]`` vertex properties."""
+    names = ("x", "y", "z", "nx", "ny", "nz")[: columns.shape[1]]
+    header = [
+        "ply",
+        "format binary_little_endian 1.0",
+        f"element vertex {columns.shape[0]}",
+        *(f"property float {name}" for name in names),
+        "end_header",
+    ]
+    with path.open("wb") as stream:
+        stream.write(("\n".join(header) + "\n").encode("ascii"))
+        stream.write(columns.astype("<f4").tobytes())
+
+
+def _write_pcd(path: Path, columns: np.ndarray) -> None:
+    """Binary PCD v0.7 with float32 ``x y z [normal_x normal_y normal_z]`` fields."""
+    names = ("x", "y", "z", "normal_x", "normal_y", "normal_z")[: columns.shape[1]]
+    count = len(names)
+    header = [
+        "# .PCD v0.7 - Point Cloud Data file format",
+        "VERSION 0.7",
+        f"FIELDS {' '.join(names)}",
+        f"SIZE {' '.join(['4'] * count)}",
+        f"TYPE {' '.join(['F'] * count)}",
+        f"COUNT {' '.join(['1'] * count)}",
+        f"WIDTH {columns.shape[0]}",
+        "HEIGHT 1",
+        "VIEWPOINT 0 0 0 1 0 0 0",
+        f"POINTS {columns.shape[0]}",
+        "DATA binary",
+    ]
+    with path.open("wb") as stream:
+        stream.write(("\n".join(header) + "\n").encode("ascii"))
+        stream.write(columns.astype("<f4").tobytes())
+
+
+def _write_obj(path: Path, xyz: np.ndarray, normals: np.ndarray | None) -> None:
+    """Wavefront OBJ with ``v`` lines and, when given, ``vn`` lines."""
+    with path.open("w", encoding="ascii") as stream:
+        np.savetxt(stream, xyz, fmt="v %.9g %.9g %.9g")
+        if normals is not None:
+            np.savetxt(stream, normals, fmt="vn %.9g %.9g %.9g")
+
+
+def read_transform(path: str | Path) -> np.ndarray:
+    """Read a rigid transform from a text file of 16 numbers (4x4) or 12 numbers (3x4).
+
+    Numbers may be separated by whitespace, commas or newlines; ``#`` starts a comment.
+
+    Returns:
+        float64 array of shape ``(4, 4)``.
+
+    Raises:
+        FileNotFoundError: the file does not exist.
+        ValueError: not 12 or 16 numbers, or not rigid within 1e-4; the message names the file.
+    """
+    path = _existing_file(path)
+    try:
+        with path.open("r", encoding="utf-8") as stream:
+            lines = [line.split("#", 1)[0].replace(",", " ") for line in stream]
+        values = np.array(" ".join(lines).split(), dtype=np.float64)
+    except (OSError, ValueError, UnicodeDecodeError) as error:
+        raise ValueError(f"{path}: cannot read transform: {error}") from error
+    if values.size == 16:
+        transform = values.reshape(4, 4)
+    elif values.size == 12:
+        transform = np.vstack([values.reshape(3, 4), [0.0, 0.0, 0.0, 1.0]])
+    else:
+        raise ValueError(f"{path}: expected 16 (4x4) or 12 (3x4) numbers, got {values.size}")
+    try:
+        check_transform(transform, "transform", rigid_atol=1e-4)
+    except ValueError as error:
+        raise ValueError(f"{path}: {error}") from error
+    return transform
+
+
+def write_transform(path: str | Path, transform: np.ndarray) -> None:
+    """Write a ``(4, 4)`` transform as 4 lines of 4 numbers, creating parent folders.
+
+    Values are written with 17 significant digits, so :func:`read_transform` returns them
+    exactly.
+    """
+    check_transform(transform, "transform")
+    transform = np.asarray(transform, dtype=np.float64)
+    if transform.shape != (4, 4):
+        raise ValueError(f"transform must have shape (4, 4), got {transform.shape}")
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    np.savetxt(path, transform, fmt="%.17g")
+
+
+def read_mesh(path: str | Path):
+    """Read a triangle mesh (``.off``, ``.obj``, ``.ply``, ``.stl``) with trimesh.
+
+    Vertices that share a position are merged (trimesh's OBJ loader splits them at texture and
+    normal seams; some OFF/PLY files repeat them), so the mesh has one vertex per distinct
+    position and the file's faces; multi-part files (a trimesh ``Scene``) are concatenated.
+
+    Returns:
+        ``trimesh.Trimesh``.
+
+    Raises:
+        FileNotFoundError: the file does not exist.
+        ValueError: unsupported extension, unreadable file, no vertices or no faces, or
+            non-finite vertices; the message names the file.
+    """
+    import trimesh
+
+    path = _existing_file(path)
+    if path.suffix.lower() not in MESH_SUFFIXES:
+        raise ValueError(
+            f"{path}: unsupported mesh extension {path.suffix!r}; "
+            f"supported: {', '.join(MESH_SUFFIXES)}"
+        )
+    try:
+        loaded = trimesh.load(path, process=False)
+    except Exception as error:
+        raise ValueError(f"{path}: cannot read mesh: {error}") from error
+    if isinstance(loaded, trimesh.PointCloud):
+        raise ValueError(f"{path}: the mesh has no faces (a point cloud? use read_point_cloud)")
+    mesh = loaded.to_mesh() if isinstance(loaded, trimesh.Scene) else loaded
+    if len(mesh.vertices) == 0:
+        raise ValueError(f"{path}: the mesh has no vertices")
+    if len(mesh.faces) == 0:
+        raise ValueError(f"{path}: the mesh has no faces (a point cloud? use read_point_cloud)")
+    if not np.isfinite(mesh.vertices).all():
+        raise ValueError(f"{path}: mesh vertices contain NaN or Inf")
+    mesh.merge_vertices(merge_tex=True, merge_norm=True)
+    return mesh

@@ -1,0 +1,377 @@
+"""Compiled (numba) index kernels of the line-intersection metric.
+
+Nothing here is differentiable, and nothing needs to be: the kernels only decide *which*
+points form each intersection and *which* intersections are matched. They return indices and
+detached convex weights; the loss gathers the points with torch so autograd sees every
+coordinate that enters the value.
+
+Candidate search, without ever testing all point-line pairs:
+
+* every point ``p`` with radius ``r_p`` is inserted into each cell of a uniform grid that its
+  ball ``B(p, r_p)`` overlaps (a "dilated" grid, built once per call in ``O(N)``);
+* each line walks the cells it crosses (3D-DDA, Amanatides & Woo 1987) and tests the points
+  stored there. If ``dist(p, line) < r_p``, the foot of the perpendicular ``q`` lies in
+  ``B(p, r_p)``, so the cell that the walk visits at ``q``'s line parameter holds a copy of
+  ``p``. A point is therefore accepted only in the cell whose parameter interval contains its
+  own parameter ``t_p``, which finds every candidate exactly once.
+
+Work is ``O(N + L * (cells crossed + points met))``; memory ``O(N + L + hits)``.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numba
+import numpy as np
+
+MODE_CANDIDATES = 0  # Insec1: every candidate point is an intersection
+MODE_CONVEX = 1  # paper Eq. (7): candidates whose k nearest neighbours are candidates too
+MODE_TRIPLET = 2  # authors' code: the point and its k neighbours all within the anchor's radius
+
+_GRID_CELL_CAP_PER_POINT = 8
+_MIN_GRID_CELLS = 4096
+
+
+def grid_cell_size(points: np.ndarray, radius: np.ndarray, cell_factor: float) -> float:
+    """Cell edge for the dilated grid: ``cell_factor`` times the median radius, bounded so the
+    grid has at most ``max(4096, 8 N)`` cells (memory linear in ``N``)."""
+    extent = points.max(axis=0) - points.min(axis=0) + 2.0 * radius.max()
+    cap = max(_MIN_GRID_CELLS, _GRID_CELL_CAP_PER_POINT * len(points))
+    floor = float((np.prod(np.maximum(extent, 1e-12)) / cap) ** (1.0 / 3.0))
+    floor = max(floor, float(extent.max()) / 1024.0)
+    return max(cell_factor * float(np.median(radius)), floor, 1e-12)
+
+
+@numba.njit(cache=True)
+def build_dilated_grid(points, radius, cell):
+    """CSR grid: cell ``c`` holds ``cell_points[cell_start[c]:cell_start[c+1]]``.
+
+    Returns ``(grid_min (3,), dims (3,) int64, cell_start (C+1,), cell_points (S,),
+    cell_xyzr (S, 4))``; ``cell_xyzr`` repeats each stored point's coordinates and radius in
+    cell order so that the line walk reads memory sequentially.
+    """
+    n = points.shape[0]
+    grid_min = np.empty(3)
+    grid_max = np.empty(3)
+    r_max = radius.max()
+    for a in range(3):
+        grid_min[a] = points[:, a].min() - r_max
+        grid_max[a] = points[:, a].max() + r_max
+    dims = np.empty(3, dtype=np.int64)
+    for a in range(3):
+        dims[a] = max(1, math.ceil((grid_max[a] - grid_min[a]) / cell))
+    n_cells = dims[0] * dims[1] * dims[2]
+    lo = np.empty((n, 3), dtype=np.int64)
+    hi = np.empty((n, 3), dtype=np.int64)
+    counts = np.zeros(n_cells + 1, dtype=np.int64)
+    for i in range(n):
+        for a in range(3):
+            lo[i, a] = min(dims[a] - 1, max(0, int((points[i, a] - radius[i] - grid_min[a]) / cell)))
+            hi[i, a] = min(dims[a] - 1, max(0, int((points[i, a] + radius[i] - grid_min[a]) / cell)))
+        for x in range(lo[i, 0], hi[i, 0] + 1):
+            for y in range(lo[i, 1], hi[i, 1] + 1):
+                for z in range(lo[i, 2], hi[i, 2] + 1):
+                    counts[(x * dims[1] + y) * dims[2] + z + 1] += 1
+    cell_start = np.cumsum(counts)
+    fill = cell_start[:-1].copy()
+    cell_points = np.empty(cell_start[-1], dtype=np.int64)
+    for i in range(n):
+        for x in range(lo[i, 0], hi[i, 0] + 1):
+            for y in range(lo[i, 1], hi[i, 1] + 1):
+                for z in range(lo[i, 2], hi[i, 2] + 1):
+                    c = (x * dims[1] + y) * dims[2] + z
+                    cell_points[fill[c]] = i
+                    fill[c] += 1
+    cell_xyzr = np.empty((cell_points.shape[0], 4))
+    for s in range(cell_points.shape[0]):
+        i = cell_points[s]
+        cell_xyzr[s, 0] = points[i, 0]
+        cell_xyzr[s, 1] = points[i, 1]
+        cell_xyzr[s, 2] = points[i, 2]
+        cell_xyzr[s, 3] = radius[i]
+    return grid_min, dims, cell_start, cell_points, cell_xyzr
+
+
+@numba.njit(cache=True, inline="always")
+def _line_distance(points, i, ox, oy, oz, ux, uy, uz, eps2):
+    """Distance from point ``i`` to the line ``o + t u`` (``u`` unit), with ``eps2`` added
+    under the square root (the authors' code adds 2e-4)."""
+    dx = points[i, 0] - ox
+    dy = points[i, 1] - oy
+    dz = points[i, 2] - oz
+    t = dx * ux + dy * uy + dz * uz
+    d2 = dx * dx + dy * dy + dz * dz - t * t
+    return math.sqrt(max(d2, 0.0) + eps2)
+
+
+@numba.njit(cache=True, inline="always")
+def _axis_setup(o, u, lo, cell, dim, t_start):
+    """DDA set-up on one axis: ``(cell index, step, t of the next boundary, t per cell)``."""
+    i = min(dim - 1, max(0, int((o + t_start * u - lo) / cell)))
+    if u > 1e-15:
+        return i, 1, (lo + (i + 1) * cell - o) / u, cell / u
+    if u < -1e-15:
+        return i, -1, (lo + i * cell - o) / u, -cell / u
+    return i, 0, np.inf, np.inf
+
+
+@numba.njit(cache=True, inline="always")
+def _slab(o, u, lo, hi, t0, t1):
+    """Intersect the running parameter interval ``[t0, t1]`` with one slab of the grid box."""
+    if abs(u) < 1e-15:
+        if o < lo or o > hi:
+            return 1.0, 0.0
+        return t0, t1
+    ta = (lo - o) / u
+    tb = (hi - o) / u
+    return max(t0, min(ta, tb)), min(t1, max(ta, tb))
+
+
+@numba.njit(cache=True)
+def _scan_line(
+    line,
+    origins,
+    dirs,
+    points,
+    radius,
+    neighbors,
+    mode,
+    eps2,
+    grid_min,
+    dims,
+    cell,
+    cell_start,
+    cell_points,
+    cell_xyzr,
+    write,
+    out_start,
+    out_anchor,
+    out_weight,
+):
+    """Walk one line through the grid; count (``write=False``) or write its intersections."""
+    ox, oy, oz = origins[line, 0], origins[line, 1], origins[line, 2]
+    ux, uy, uz = dirs[line, 0], dirs[line, 1], dirs[line, 2]
+    nx, ny, nz = dims[0], dims[1], dims[2]
+    k = neighbors.shape[1]
+    t0, t1 = _slab(ox, ux, grid_min[0], grid_min[0] + nx * cell, -np.inf, np.inf)
+    t0, t1 = _slab(oy, uy, grid_min[1], grid_min[1] + ny * cell, t0, t1)
+    t0, t1 = _slab(oz, uz, grid_min[2], grid_min[2] + nz * cell, t0, t1)
+    if t0 >= t1:
+        return 0
+    t_start = t0 + 1e-9 * (t1 - t0)
+    ix, sx, tmx, tdx = _axis_setup(ox, ux, grid_min[0], cell, nx, t_start)
+    iy, sy, tmy, tdy = _axis_setup(oy, uy, grid_min[1], cell, ny, t_start)
+    iz, sz, tmz, tdz = _axis_setup(oz, uz, grid_min[2], cell, nz, t_start)
+    count = 0
+    t_enter = -np.inf
+    while True:
+        # Next boundary crossed, and whether this is the last cell on the line.
+        if tmx <= tmy and tmx <= tmz:
+            t_exit = tmx
+            last = ix + sx < 0 or ix + sx >= nx
+        elif tmy <= tmz:
+            t_exit = tmy
+            last = iy + sy < 0 or iy + sy >= ny
+        else:
+            t_exit = tmz
+            last = iz + sz < 0 or iz + sz >= nz
+        if t_exit >= t1:
+            last = True
+        if last:
+            t_exit = np.inf
+        c = (ix * ny + iy) * nz + iz
+        for s in range(cell_start[c], cell_start[c + 1]):
+            dx = cell_xyzr[s, 0] - ox
+            dy = cell_xyzr[s, 1] - oy
+            dz = cell_xyzr[s, 2] - oz
+            t = dx * ux + dy * uy + dz * uz
+            r = cell_xyzr[s, 3]
+            d2 = max(dx * dx + dy * dy + dz * dz - t * t, 0.0)
+            # Most stored points are far from the line: reject on distance first, then keep the
+            # point only in the cell whose parameter interval holds its foot point (dedup).
+            if d2 + eps2 >= r * r:
+                continue
+            if t < t_enter or t >= t_exit:
+                continue
+            i = cell_points[s]
+            d = math.sqrt(d2 + eps2)
+            if mode == MODE_CANDIDATES:
+                if write:
+                    out_anchor[out_start + count] = i
+                    out_weight[out_start + count, 0] = 1.0
+                count += 1
+                continue
+            # MODE_CONVEX: neighbours must be candidates under their own radius;
+            # MODE_TRIPLET: neighbours must be within the anchor's radius.
+            ok = True
+            total = d
+            for j in range(k):
+                nb = neighbors[i, j]
+                dn = _line_distance(points, nb, ox, oy, oz, ux, uy, uz, eps2)
+                limit = radius[nb] if mode == MODE_CONVEX else r
+                if dn >= limit:
+                    ok = False
+                    break
+                total += dn
+            if not ok:
+                continue
+            if write:
+                row = out_start + count
+                out_anchor[row] = i
+                if total > 0.0:
+                    out_weight[row, 0] = d / total
+                    for j in range(k):
+                        dn = _line_distance(points, neighbors[i, j], ox, oy, oz, ux, uy, uz, eps2)
+                        out_weight[row, j + 1] = dn / total
+                else:
+                    for j in range(k + 1):
+                        out_weight[row, j] = 1.0 / (k + 1)
+            count += 1
+        if last:
+            break
+        t_enter = t_exit
+        if tmx <= tmy and tmx <= tmz:
+            ix += sx
+            tmx += tdx
+        elif tmy <= tmz:
+            iy += sy
+            tmy += tdy
+        else:
+            iz += sz
+            tmz += tdz
+    return count
+
+
+@numba.njit(parallel=True, cache=True)
+def line_intersections(origins, dirs, points, radius, neighbors, mode, eps2, cell):
+    """All intersections of ``L`` lines with one cloud.
+
+    Args:
+        origins, dirs: ``(L, 3)`` float64 line points and unit directions.
+        points: ``(N, 3)`` float64.
+        radius: ``(N,)`` float64 per-point cylinder radius (``delta`` in the paper).
+        neighbors: ``(N, k)`` int64 k nearest neighbours of each point (self excluded);
+            ``(N, 0)`` for ``MODE_CANDIDATES``.
+        mode: ``MODE_CANDIDATES``, ``MODE_CONVEX`` or ``MODE_TRIPLET``.
+        eps2: added under the square root of every point-line distance.
+        cell: grid cell edge (see :func:`grid_cell_size`).
+
+    Returns:
+        ``offsets (L+1,)`` int64 (intersections of line ``l`` are ``offsets[l]:offsets[l+1]``),
+        ``anchors (H,)`` int64 anchor point of each intersection, ``weights (H, k+1)`` float64
+        convex weights of the anchor and its neighbours (detached; Eq. 7's ``d_p / sum d``).
+    """
+    n_lines = origins.shape[0]
+    k = neighbors.shape[1]
+    grid_min, dims, cell_start, cell_points, cell_xyzr = build_dilated_grid(points, radius, cell)
+    counts = np.zeros(n_lines + 1, dtype=np.int64)
+    dummy_anchor = np.empty(0, dtype=np.int64)
+    dummy_weight = np.empty((0, k + 1))
+    for line in numba.prange(n_lines):
+        counts[line + 1] = _scan_line(
+            line,
+            origins,
+            dirs,
+            points,
+            radius,
+            neighbors,
+            mode,
+            eps2,
+            grid_min,
+            dims,
+            cell,
+            cell_start,
+            cell_points,
+            cell_xyzr,
+            False,
+            0,
+            dummy_anchor,
+            dummy_weight,
+        )
+    offsets = np.cumsum(counts)
+    anchors = np.empty(offsets[-1], dtype=np.int64)
+    weights = np.zeros((offsets[-1], k + 1))
+    for line in numba.prange(n_lines):
+        if offsets[line + 1] > offsets[line]:
+            _scan_line(
+                line,
+                origins,
+                dirs,
+                points,
+                radius,
+                neighbors,
+                mode,
+                eps2,
+                grid_min,
+                dims,
+                cell,
+                cell_start,
+                cell_points,
+                cell_xyzr,
+                True,
+                offsets[line],
+                anchors,
+                weights,
+            )
+    return offsets, anchors, weights
+
+
+@numba.njit(parallel=True, cache=True)
+def match_along_lines(src_offsets, tgt_offsets, src_points, tgt_points, pair_offsets):
+    """Closest-point matching both ways between the intersections of each line.
+
+    Args:
+        src_offsets, tgt_offsets: ``(L+1,)`` CSR offsets of the source/target intersections.
+        src_points, tgt_points: ``(Hs, 3)``, ``(Ht, 3)`` float64 intersection points.
+        pair_offsets: ``(L+1,)`` where line ``l`` owns ``|S_l| + |T_l|`` pair slots if it is
+            kept, zero otherwise.
+
+    Returns:
+        ``src_index (P,)``, ``tgt_index (P,)`` int64 (into the intersection arrays), and
+        ``line (P,)`` int64. Slots ``[0, |S_l|)`` of a line match each source intersection to
+        its closest target intersection (sigma_l); the rest match each target intersection to
+        its closest source intersection (rho_l).
+    """
+    n_lines = src_offsets.shape[0] - 1
+    n_pairs = pair_offsets[-1]
+    src_index = np.empty(n_pairs, dtype=np.int64)
+    tgt_index = np.empty(n_pairs, dtype=np.int64)
+    line_of = np.empty(n_pairs, dtype=np.int64)
+    for line in numba.prange(n_lines):
+        p = pair_offsets[line]
+        if pair_offsets[line + 1] == p:
+            continue
+        s0, s1 = src_offsets[line], src_offsets[line + 1]
+        g0, g1 = tgt_offsets[line], tgt_offsets[line + 1]
+        for s in range(s0, s1):
+            best = np.inf
+            arg = g0
+            for g in range(g0, g1):
+                d = 0.0
+                for a in range(3):
+                    diff = src_points[s, a] - tgt_points[g, a]
+                    d += diff * diff
+                if d < best:
+                    best = d
+                    arg = g
+            src_index[p] = s
+            tgt_index[p] = arg
+            line_of[p] = line
+            p += 1
+        for g in range(g0, g1):
+            best = np.inf
+            arg = s0
+            for s in range(s0, s1):
+                d = 0.0
+                for a in range(3):
+                    diff = src_points[s, a] - tgt_points[g, a]
+                    d += diff * diff
+                if d < best:
+                    best = d
+                    arg = s
+            src_index[p] = arg
+            tgt_index[p] = g
+            line_of[p] = line
+            p += 1
+    return src_index, tgt_index, line_of

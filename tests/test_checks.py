@@ -1,0 +1,128 @@
+"""Tests for linereg.checks: error types and messages."""
+
+from __future__ import annotations
+
+import re
+
+import numpy as np
+import pytest
+import torch
+
+from linereg.checks import check_points, check_same_batch, check_transform
+from linereg.se3 import se3_exp
+
+
+class TestCheckPoints:
+    @pytest.mark.parametrize(
+        "points",
+        [
+            torch.zeros(5, 3),
+            torch.zeros(2, 5, 3),
+            np.zeros((5, 3), dtype=np.float32),
+            torch.zeros(2, 5, 3, dtype=torch.float64),
+        ],
+    )
+    def test_accepts(self, points):
+        check_points(points)
+
+    def test_not_an_array(self):
+        with pytest.raises(
+            TypeError, match=r"src must be a torch\.Tensor or numpy array, got list"
+        ):
+            check_points([[0.0, 0.0, 0.0]], "src")
+
+    @pytest.mark.parametrize(
+        "points", [torch.zeros(5, 3, dtype=torch.long), np.zeros((5, 3), dtype=np.int32)]
+    )
+    def test_non_float(self, points):
+        with pytest.raises(TypeError, match="src must have a floating-point dtype, got"):
+            check_points(points, "src")
+
+    def test_wrong_last_axis(self):
+        with pytest.raises(
+            ValueError, match=r"src must have shape \(N, 3\) or \(B, N, 3\), got \(5, 2\)"
+        ):
+            check_points(torch.zeros(5, 2), "src")
+
+    def test_wrong_rank(self):
+        with pytest.raises(ValueError, match=r"got \(1, 2, 5, 3\)"):
+            check_points(torch.zeros(1, 2, 5, 3), "src")
+
+    def test_batched_flag(self):
+        with pytest.raises(ValueError, match=r"tgt must have shape \(B, N, 3\), got \(5, 3\)"):
+            check_points(torch.zeros(5, 3), "tgt", batched=True)
+        with pytest.raises(ValueError, match=r"tgt must have shape \(N, 3\), got \(1, 5, 3\)"):
+            check_points(torch.zeros(1, 5, 3), "tgt", batched=False)
+
+    def test_other_dimension(self):
+        check_points(torch.zeros(5, 6), dim=6)
+        with pytest.raises(
+            ValueError, match=r"must have shape \(N, 6\) or \(B, N, 6\), got \(5, 3\)"
+        ):
+            check_points(torch.zeros(5, 3), dim=6)
+
+    def test_empty(self):
+        with pytest.raises(ValueError, match=r"src must hold at least 1 point\(s\), got 0"):
+            check_points(torch.zeros(2, 0, 3), "src")
+        with pytest.raises(ValueError, match=r"at least 3 point\(s\), got 2"):
+            check_points(torch.zeros(2, 3), "src", min_points=3)
+
+    @pytest.mark.parametrize("bad", [float("nan"), float("inf")])
+    def test_non_finite(self, bad):
+        points = torch.zeros(2, 5, 3)
+        points[1, 2, 0] = bad
+        with pytest.raises(ValueError, match="src contains NaN or Inf coordinates"):
+            check_points(points, "src")
+        with pytest.raises(ValueError, match="src contains NaN or Inf coordinates"):
+            check_points(points.numpy(), "src")
+
+
+class TestCheckTransform:
+    def test_accepts(self):
+        check_transform(torch.eye(4))
+        check_transform(se3_exp(torch.randn(2, 3, 6, dtype=torch.float64)), rigid_atol=1e-9)
+        check_transform(np.eye(4), rigid_atol=1e-9)
+
+    def test_not_an_array(self):
+        with pytest.raises(
+            TypeError, match=r"T_pred must be a torch\.Tensor or numpy array, got tuple"
+        ):
+            check_transform((1, 2), "T_pred")
+
+    @pytest.mark.parametrize("shape", [(3, 4), (4,), (2, 4, 3)])
+    def test_wrong_shape(self, shape):
+        with pytest.raises(
+            ValueError,
+            match=re.escape(f"T_pred must have shape (..., 4, 4), got {shape}"),
+        ):
+            check_transform(torch.zeros(shape), "T_pred")
+
+    def test_non_finite(self):
+        transform = torch.eye(4).repeat(2, 1, 1)
+        transform[1, 0, 3] = float("nan")
+        with pytest.raises(ValueError, match="T_pred contains NaN or Inf entries"):
+            check_transform(transform, "T_pred")
+
+    def test_non_rigid(self):
+        scaled = torch.eye(4)
+        scaled[:3, :3] *= 2.0
+        with pytest.raises(
+            ValueError, match=r"T_pred is not a rigid transform: max \|R\^T R - I\| = 3\.00e\+00"
+        ):
+            check_transform(scaled, "T_pred", rigid_atol=1e-6)
+        reflection = torch.diag(torch.tensor([1.0, 1.0, -1.0, 1.0]))
+        with pytest.raises(ValueError, match=r"det R = \[-1\.\]"):
+            check_transform(reflection, "T_pred", rigid_atol=1e-6)
+        bad_last_row = torch.eye(4)
+        bad_last_row[3, 0] = 0.5
+        with pytest.raises(ValueError, match=r"last-row error 5\.00e-01 \(tolerance 1e-06\)"):
+            check_transform(bad_last_row, "T_pred", rigid_atol=1e-6)
+
+    def test_non_rigid_accepted_without_tolerance(self):
+        check_transform(torch.eye(4) * 2.0)
+
+
+def test_check_same_batch():
+    check_same_batch(torch.zeros(2, 5, 3), torch.zeros(2, 4, 4), "src", "T")
+    with pytest.raises(ValueError, match="src and T must share the batch size, got 2 and 3"):
+        check_same_batch(torch.zeros(2, 5, 3), torch.zeros(3, 4, 4), "src", "T")

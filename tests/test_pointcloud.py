@@ -1,0 +1,252 @@
+"""Tests for linereg.pointcloud against slow references and hand-made clouds."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from linereg.pointcloud import (
+    KNN,
+    _knn_indices_cdist,
+    bounding_sphere,
+    estimate_normals,
+    farthest_point_sampling,
+    fit_into_cube,
+    hidden_point_removal,
+    knn,
+    mean_neighbor_distance,
+    resample_indices,
+)
+
+
+def _knn_naive(query: torch.Tensor, reference: torch.Tensor, k: int) -> KNN:
+    """Brute force: all pairwise distances, sorted."""
+    dists = ((query[..., :, None, :] - reference[..., None, :, :]) ** 2).sum(-1).sqrt()
+    values, idx = dists.sort(dim=-1)
+    return KNN(values[..., :k], idx[..., :k])
+
+
+def _unit_sphere(num_points: int, seed: int = 0) -> np.ndarray:
+    points = np.random.default_rng(seed).normal(size=(num_points, 3))
+    return points / np.linalg.norm(points, axis=1, keepdims=True)
+
+
+def _lattice(size: int) -> np.ndarray:
+    axis = np.arange(size, dtype=np.float64)
+    return np.stack(np.meshgrid(axis, axis, axis, indexing="ij"), axis=-1).reshape(-1, 3)
+
+
+@pytest.mark.parametrize("batched", [True, False])
+def test_knn_matches_brute_force(batched: bool) -> None:
+    generator = torch.Generator().manual_seed(0)
+    shape_q, shape_r = ((3, 70, 3), (3, 90, 3)) if batched else ((70, 3), (90, 3))
+    query = torch.rand(shape_q, generator=generator, dtype=torch.float64)
+    reference = torch.rand(shape_r, generator=generator, dtype=torch.float64)
+    result = knn(query, reference, 6)
+    expected = _knn_naive(query, reference, 6)
+    assert result.idx.shape == (*shape_q[:-1], 6)
+    assert result.idx.dtype == torch.long
+    torch.testing.assert_close(result.idx, expected.idx, rtol=0, atol=0)
+    torch.testing.assert_close(result.dists, expected.dists)
+
+
+def test_knn_cdist_path_matches_kdtree() -> None:
+    generator = torch.Generator().manual_seed(1)
+    query = torch.rand(2, 300, 3, generator=generator, dtype=torch.float64)
+    reference = torch.rand(2, 200, 3, generator=generator, dtype=torch.float64)
+    torch.testing.assert_close(
+        _knn_indices_cdist(query, reference, 5), knn(query, reference, 5).idx, rtol=0, atol=0
+    )
+
+
+@pytest.mark.parametrize("rows_per_chunk", [7, 90])
+def test_knn_cdist_path_chunks(monkeypatch: pytest.MonkeyPatch, rows_per_chunk: int) -> None:
+    monkeypatch.setattr("linereg.pointcloud._CHUNK_BYTES", 8 * 50 * rows_per_chunk)
+    generator = torch.Generator().manual_seed(2)
+    query = torch.rand(3, 40, 3, generator=generator, dtype=torch.float64)
+    reference = torch.rand(3, 50, 3, generator=generator, dtype=torch.float64)
+    torch.testing.assert_close(
+        _knn_indices_cdist(query, reference, 4),
+        _knn_naive(query, reference, 4).idx,
+        rtol=0,
+        atol=0,
+    )
+
+
+def test_knn_exclude_self() -> None:
+    points = torch.rand(2, 60, 3, generator=torch.Generator().manual_seed(3), dtype=torch.float64)
+    result = knn(points, points, 4, exclude_self=True)
+    expected = _knn_naive(points, points, 5)
+    own = torch.arange(60)[None, :, None]
+    assert not (result.idx == own).any()
+    torch.testing.assert_close(result.idx, expected.idx[..., 1:], rtol=0, atol=0)
+    torch.testing.assert_close(result.dists, expected.dists[..., 1:])
+
+
+def test_knn_exclude_self_keeps_duplicates() -> None:
+    base = torch.rand(10, 3, generator=torch.Generator().manual_seed(4), dtype=torch.float64)
+    points = torch.cat([base] * 5)
+    result = knn(points, points, 2, exclude_self=True)
+    own = torch.arange(50)[:, None]
+    assert not (result.idx == own).any()
+    torch.testing.assert_close(result.dists, torch.zeros(50, 2, dtype=torch.float64))
+    assert ((result.idx % 10) == (own % 10)).all()
+
+
+def test_knn_gradients_reach_both_clouds() -> None:
+    generator = torch.Generator().manual_seed(5)
+    query = torch.rand(2, 20, 3, generator=generator, dtype=torch.float64, requires_grad=True)
+    reference = torch.rand(2, 30, 3, generator=generator, dtype=torch.float64, requires_grad=True)
+    torch.autograd.gradcheck(lambda q, r: knn(q, r, 3).dists, (query, reference))
+    knn(query, reference, 3).dists.sum().backward()
+    assert query.grad.abs().sum() > 0 and reference.grad.abs().sum() > 0
+
+
+def test_knn_errors() -> None:
+    points = torch.rand(2, 5, 3)
+    with pytest.raises(ValueError, match="k must be between 1 and 5"):
+        knn(points, points, 6)
+    with pytest.raises(ValueError, match="k must be between 1 and 4"):
+        knn(points, points, 5, exclude_self=True)
+    with pytest.raises(ValueError, match="k must be between"):
+        knn(points, points, 0)
+    with pytest.raises(ValueError, match="exclude_self=True requires query"):
+        knn(points, points + 1, 2, exclude_self=True)
+    with pytest.raises(ValueError, match="both be batched or both unbatched"):
+        knn(points, points[0], 2)
+    with pytest.raises(ValueError, match="batch size"):
+        knn(points, torch.rand(3, 5, 3), 2)
+    with pytest.raises(ValueError, match=r"query must have shape"):
+        knn(torch.rand(5, 2), torch.rand(5, 2), 1)
+
+
+def test_mean_neighbor_distance_unit_lattice() -> None:
+    lattice = _lattice(4)
+    torch.testing.assert_close(
+        mean_neighbor_distance(lattice, k=2), torch.tensor(1.0, dtype=torch.float64)
+    )
+    batched = torch.from_numpy(np.stack([lattice, 2.5 * lattice]))
+    torch.testing.assert_close(
+        mean_neighbor_distance(batched, k=1), torch.tensor([1.0, 2.5], dtype=torch.float64)
+    )
+
+
+def test_mean_neighbor_distance_edge_cases() -> None:
+    assert mean_neighbor_distance(torch.zeros(7, 3), k=2).item() == 0.0
+    with pytest.raises(ValueError, match="k < N"):
+        mean_neighbor_distance(torch.rand(2, 3), k=2)
+
+
+def test_fps_unique_and_spread() -> None:
+    points = np.random.default_rng(6).random((3000, 3)).astype(np.float32)
+    for start_index in (None, 17):
+        idx = farthest_point_sampling(points, 64, start_index=start_index)
+        assert idx.shape == (64,) and idx.dtype == np.int64
+        assert len(np.unique(idx)) == 64
+        sampled = points[idx]
+        random = points[np.random.default_rng(7).choice(3000, 64, replace=False)]
+        assert _min_pairwise(sampled) > 3 * _min_pairwise(random)
+    assert farthest_point_sampling(points, 5, start_index=17)[0] == 17
+
+
+def test_fps_torch_batched_and_duplicates() -> None:
+    points = torch.rand(2, 500, 3, generator=torch.Generator().manual_seed(8))
+    idx = farthest_point_sampling(points, 32)
+    assert idx.shape == (2, 32) and idx.dtype == torch.long
+    for row in idx:
+        assert len(torch.unique(row)) == 32
+    duplicated = np.repeat(np.random.default_rng(9).random((4, 3)), 25, axis=0)
+    idx = farthest_point_sampling(duplicated, 10)
+    assert len(np.unique(idx)) == 10
+    assert len(np.unique(duplicated[idx[:4]], axis=0)) == 4
+
+
+def test_fps_errors() -> None:
+    points = np.random.default_rng(0).random((10, 3))
+    with pytest.raises(ValueError, match="n_samples must be between 1 and N=10"):
+        farthest_point_sampling(points, 11)
+    with pytest.raises(ValueError, match="n_samples must be between"):
+        farthest_point_sampling(points, 0)
+    with pytest.raises(ValueError, match="start_index must be in"):
+        farthest_point_sampling(points, 3, start_index=10)
+
+
+def _min_pairwise(points: np.ndarray) -> float:
+    diff = np.linalg.norm(points[:, None] - points[None], axis=-1)
+    return float(diff[~np.eye(len(points), dtype=bool)].min())
+
+
+def test_resample_indices_without_replacement() -> None:
+    idx = resample_indices(100, 40, 0)
+    assert idx.shape == (40,) and idx.dtype == np.int64
+    assert len(np.unique(idx)) == 40 and idx.min() >= 0 and idx.max() < 100
+    np.testing.assert_array_equal(idx, resample_indices(100, 40, np.random.default_rng(0)))
+    assert sorted(resample_indices(30, 30, 1)) == list(range(30))
+
+
+def test_resample_indices_with_replacement_keeps_every_point() -> None:
+    idx = resample_indices(10, 25, 3)
+    assert idx.shape == (25,)
+    counts = np.bincount(idx, minlength=10)
+    assert counts.min() >= 1 and counts.sum() == 25
+    with pytest.raises(ValueError, match="num_points >= 1"):
+        resample_indices(0, 5, 0)
+
+
+def test_estimate_normals_sphere_consistent_outward() -> None:
+    points = _unit_sphere(2000)
+    normals = estimate_normals(points, k=20)
+    assert normals.dtype == np.float32
+    np.testing.assert_allclose(np.linalg.norm(normals, axis=1), 1.0, atol=1e-5)
+    assert np.sum(normals * points, axis=1).min() > 0.98
+
+
+def test_estimate_normals_plane_and_camera() -> None:
+    rng = np.random.default_rng(10)
+    plane = np.column_stack([rng.random((400, 2)), np.zeros(400)])
+    normals = estimate_normals(plane, k=15)
+    np.testing.assert_allclose(np.abs(normals[:, 2]), 1.0, atol=1e-5)
+    assert len(np.unique(np.sign(normals[:, 2]))) == 1
+    for camera_z in (5.0, -5.0):
+        towards = estimate_normals(plane, k=15, orient_towards=np.array([0.5, 0.5, camera_z]))
+        np.testing.assert_allclose(towards[:, 2], np.sign(camera_z), atol=1e-5)
+    inward = estimate_normals(_unit_sphere(500), radius=0.5, orient_towards=np.zeros(3))
+    assert np.sum(inward * _unit_sphere(500), axis=1).max() < -0.9
+
+
+def test_bounding_sphere_covers_all_points() -> None:
+    generator = torch.Generator().manual_seed(11)
+    a = torch.randn(4, 100, 3, generator=generator)
+    b = torch.randn(4, 50, 3, generator=generator) * 3 + 2
+    center, radius = bounding_sphere(a, b)
+    assert center.shape == (4, 3) and radius.shape == (4,)
+    for cloud in (a, b):
+        assert ((cloud - center[:, None]).norm(dim=-1) <= radius[:, None] + 1e-5).all()
+    center, radius = bounding_sphere(a[0])
+    assert center.shape == (3,) and radius.shape == ()
+    torch.testing.assert_close((a[0] - center).norm(dim=-1).max(), radius)
+    with pytest.raises(ValueError, match="all batched"):
+        bounding_sphere(a, b[0])
+
+
+def test_fit_into_cube_bounds() -> None:
+    rng = np.random.default_rng(12)
+    a = (rng.random((200, 3)) * [10.0, 2.0, 3.0] + 40.0).astype(np.float32)
+    b = (rng.random((100, 3)) * 4.0 + 45.0).astype(np.float32)
+    (sa, sb), center, scale = fit_into_cube(a, b, half_extent=1.0)
+    joint = np.vstack([sa, sb])
+    assert sa.dtype == np.float32
+    assert np.abs(joint).max() <= 1.0 + 1e-6
+    np.testing.assert_allclose(joint.max(axis=0)[np.argmax(np.ptp(joint, axis=0))], 1.0, atol=1e-6)
+    np.testing.assert_allclose(sa, (a - center) * scale, atol=1e-5)
+    with pytest.raises(ValueError, match="zero extent"):
+        fit_into_cube(np.ones((5, 3)))
+
+
+def test_hidden_point_removal_keeps_front_half() -> None:
+    points = _unit_sphere(4000, seed=13)
+    visible = hidden_point_removal(points, np.array([0.0, 0.0, 10.0]))
+    assert visible.dtype == np.int64 and np.all(np.diff(visible) > 0)
+    assert 0.35 < len(visible) / len(points) < 0.55
+    assert (points[visible, 2] > -0.05).mean() > 0.99

@@ -1,8 +1,9 @@
 """A deliberately simple dense reference of the line-intersection metric.
 
-Every point-line distance is materialised (``L x N``) and lines are processed one by one in
-Python, straight from the paper's definitions. Only for small cases: tests compare the sparse
-implementation against it, and ``scripts/bench_loss.py`` times it where it fits.
+Every point-line distance is materialised (an ``L x N`` matrix, processed in chunks of lines),
+straight from the paper's definitions, with no spatial index. Tests compare the sparse
+implementation against it (values and gradients), and ``scripts/bench_loss.py`` times it where
+it fits in memory.
 """
 
 from __future__ import annotations
@@ -13,71 +14,92 @@ import torch
 from losses.line_intersection import LineMetricOptions
 
 
-def _intersections(
-    points: torch.Tensor, origins: torch.Tensor, dirs: torch.Tensor, options: LineMetricOptions
-) -> list[torch.Tensor]:
-    """Per line, the ``(h, 3)`` intersection points of one cloud."""
+def _cloud_setup(points: torch.Tensor, options: LineMetricOptions) -> tuple[torch.Tensor, torch.Tensor]:
+    """``members (N, k+1)`` (each point and its k nearest neighbours) and ``radius (N,)``."""
     k = options.k
-    pairwise = torch.cdist(points.detach(), points.detach())
+    detached = points.detach()
+    pairwise = torch.cdist(detached, detached)
     pairwise.fill_diagonal_(float("inf"))
     nbr_dist, nbr_idx = pairwise.topk(k, dim=1, largest=False)
-    rel = points.detach()[None, :, :] - origins[:, None, :]
-    t = (rel * dirs[:, None, :]).sum(-1)
-    dist = (rel.square().sum(-1) - t.square()).clamp_min(0.0).add(options.distance_eps).sqrt()
+    members = torch.cat([torch.arange(len(points), device=points.device)[:, None], nbr_idx], dim=1)
     if options.intersection == "triplet":
-        members = torch.cat([torch.arange(len(points))[:, None], nbr_idx], dim=1)
-        coords = points.detach()[members]
-        spacing = torch.cdist(coords, coords).sum(dim=(1, 2)) / 2 / (k * (k + 1) / 2)
-        radius = options.delta_factor * spacing
+        coords = detached[members]
+        radius = options.delta_factor * torch.cdist(coords, coords).sum(dim=(1, 2)) / 2 / (k * (k + 1) / 2)
     else:
         radius = torch.full((len(points),), options.delta_factor * float(nbr_dist.mean()), dtype=points.dtype)
-    out = []
-    for line in range(len(origins)):
-        rows = []
-        for anchor in range(len(points)):
-            d0 = dist[line, anchor]
-            if not d0 < radius[anchor]:
-                continue
-            if options.intersection == "candidates":
-                rows.append(points[anchor])
-                continue
-            members = [anchor, *nbr_idx[anchor].tolist()]
-            limits = radius[members] if options.intersection == "convex" else radius[anchor].expand(len(members))
-            d = dist[line, members]
-            if not bool((d < limits).all()):
-                continue
-            if not options.detach_weights:
-                rel = points[members] - origins[line]
-                d = ((rel.square().sum(-1) - (rel @ dirs[line]).square()).clamp_min(0.0) + options.distance_eps).sqrt()
-            w = d / d.sum() if float(d.sum()) > 0 else torch.full_like(d, 1.0 / len(members))
-            rows.append((w[:, None] * points[members]).sum(0))
-        out.append(torch.stack(rows) if rows else points.new_zeros((0, 3)))
-    return out
+    return members, radius.to(points.device)
+
+
+def _line_distance(points: torch.Tensor, origins: torch.Tensor, dirs: torch.Tensor, eps: float) -> torch.Tensor:
+    """``(C, N)`` distances from every point to every line of the chunk."""
+    rel = points[None] - origins[:, None]
+    t = (rel * dirs[:, None]).sum(-1)
+    return ((rel.square().sum(-1) - t.square()).clamp_min(0.0) + eps).sqrt()
+
+
+def _chunk_intersections(points, members, radius, origins, dirs, options):
+    """Padded intersections of a chunk of lines: ``(C, H, 3)`` points and ``(C, H)`` validity."""
+    dist = _line_distance(points.detach(), origins, dirs, options.distance_eps)
+    if options.intersection == "candidates":
+        mask = dist < radius[None]
+        inter = points[None].expand(len(origins), -1, -1)
+    else:
+        member_dist = dist[:, members]
+        limits = radius[members] if options.intersection == "convex" else radius[:, None].expand_as(members)
+        mask = (member_dist < limits[None]).all(-1)
+        if not options.detach_weights:
+            member_dist = _line_distance(points, origins, dirs, options.distance_eps)[:, members]
+        total = member_dist.sum(-1, keepdim=True)
+        w = torch.where(total > 0, member_dist / total.clamp_min(1e-300), 1.0 / members.shape[1])
+        inter = (w[..., None] * points[members][None]).sum(-2)
+    counts = mask.sum(1)
+    width = max(int(counts.max()), 1)
+    order = torch.sort((~mask).to(torch.int8), dim=1, stable=True).indices[:, :width]
+    valid = torch.arange(width, device=points.device)[None] < counts[:, None]
+    return inter.gather(1, order[..., None].expand(-1, -1, 3)), valid
 
 
 def dense_line_metric(
-    src: torch.Tensor, tgt: torch.Tensor, origins: np.ndarray, dirs: np.ndarray, options: LineMetricOptions
+    src: torch.Tensor,
+    tgt: torch.Tensor,
+    origins: np.ndarray,
+    dirs: np.ndarray,
+    options: LineMetricOptions,
+    chunk: int = 256,
 ) -> torch.Tensor:
     """The metric for one pair ``src (N, 3)``, ``tgt (M, 3)`` and explicit lines (0-dim tensor)."""
-    o = torch.as_tensor(origins, dtype=src.dtype)
-    u = torch.as_tensor(dirs, dtype=src.dtype)
-    s_lines = _intersections(src, o, u, options)
-    t_lines = _intersections(tgt, o, u, options)
-    pairs = []  # (line, is_row, |S_l|, |T_l|, squared distance)
-    for line, (s, t) in enumerate(zip(s_lines, t_lines, strict=True)):
-        ns, nt = len(s), len(t)
-        if ns == 0 or nt == 0:
-            continue
-        if options.max_hits is not None and (ns > options.max_hits or nt > options.max_hits):
-            continue
-        d2 = (s[:, None, :] - t[None, :, :]).square().sum(-1)
-        rows = d2.detach().argmin(dim=1)
-        cols = d2.detach().argmin(dim=0)
-        pairs += [(line, True, ns, nt, d2[i, rows[i]]) for i in range(ns)]
-        pairs += [(line, False, ns, nt, d2[cols[j], j]) for j in range(nt)]
-    if not pairs:
+    o_all = torch.as_tensor(origins, dtype=src.dtype, device=src.device)
+    u_all = torch.as_tensor(dirs, dtype=src.dtype, device=src.device)
+    src_setup, tgt_setup = _cloud_setup(src, options), _cloud_setup(tgt, options)
+    d2_parts, weight_parts, group_parts, row_parts, line_count = [], [], [], [], 0
+    for start in range(0, len(o_all), chunk):
+        o, u = o_all[start : start + chunk], u_all[start : start + chunk]
+        s, s_valid = _chunk_intersections(src, *src_setup, o, u, options)
+        t, t_valid = _chunk_intersections(tgt, *tgt_setup, o, u, options)
+        ns, nt = s_valid.sum(1), t_valid.sum(1)
+        keep = (ns > 0) & (nt > 0)
+        if options.max_hits is not None:
+            keep &= (ns <= options.max_hits) & (nt <= options.max_hits)
+        d2 = (s[:, :, None] - t[:, None, :]).square().sum(-1)
+        both = s_valid[:, :, None] & t_valid[:, None, :]
+        blocked = d2.detach().masked_fill(~both, float("inf"))
+        rows = d2.gather(2, blocked.argmin(2, keepdim=True))[..., 0]
+        cols = d2.gather(1, blocked.argmin(1, keepdim=True))[:, 0]
+        row_sel = s_valid & keep[:, None]
+        col_sel = t_valid & keep[:, None]
+        line_w = torch.exp(-(ns - nt).abs().to(src.dtype) / 2.0)
+        if not options.line_weight:
+            line_w = torch.ones_like(line_w)
+        group = (ns - 1) * 1000 + (nt - 1)
+        for values, sel, is_row in ((rows, row_sel, True), (cols, col_sel, False)):
+            d2_parts.append(values[sel])
+            weight_parts.append(line_w[:, None].expand_as(sel)[sel])
+            group_parts.append(group[:, None].expand_as(sel)[sel])
+            row_parts.append(torch.full((int(sel.sum()),), is_row))
+        line_count += int(keep.sum())
+    d2 = torch.cat(d2_parts)
+    if line_count == 0:
         return src.sum() * 0.0
-    d2 = torch.stack([p[4] for p in pairs])
     if options.nu is not None:
         scale = d2.new_tensor(options.nu)
     elif options.welsch_input == "distance":
@@ -85,14 +107,11 @@ def dense_line_metric(
     else:
         scale = options.nu0 * d2.detach().median()
     two_c = 2.0 * (scale**2 if options.welsch_input == "distance" else scale)
-    psi = 1.0 - torch.exp(-d2 / two_c.clamp_min(torch.finfo(d2.dtype).tiny))
-    weight = torch.tensor(
-        [np.exp(-abs(p[2] - p[3]) / 2.0) if options.line_weight else 1.0 for p in pairs], dtype=psi.dtype
-    )
+    weighted = torch.cat(weight_parts) * (1.0 - torch.exp(-d2 / two_c.clamp_min(torch.finfo(d2.dtype).tiny)))
     if options.reduction == "lines":
-        return (weight * psi).sum() / len({p[0] for p in pairs})
-    groups: dict[tuple[int, int], dict[bool, list[torch.Tensor]]] = {}
-    for p, value in zip(pairs, weight * psi, strict=True):
-        groups.setdefault((p[2], p[3]), {True: [], False: []})[p[1]].append(value)
-    total = sum(torch.stack(g[True]).mean() + torch.stack(g[False]).mean() for g in groups.values())
-    return total / len(groups)
+        return weighted.sum() / line_count
+    groups, is_row = torch.cat(group_parts), torch.cat(row_parts)
+    total = sum(
+        weighted[(groups == g) & is_row].mean() + weighted[(groups == g) & ~is_row].mean() for g in torch.unique(groups)
+    )
+    return total / len(torch.unique(groups))

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 from typing import NamedTuple
 
+import fpsample
 import numpy as np
 import torch
 from scipy.spatial import cKDTree
@@ -71,17 +72,12 @@ def knn(
             f"{tuple(query.shape)} and {tuple(reference.shape)}"
         )
     if query.device != reference.device:
-        raise ValueError(
-            f"query and reference must be on the same device, got {query.device} and "
-            f"{reference.device}"
-        )
+        raise ValueError(f"query and reference must be on the same device, got {query.device} and {reference.device}")
     unbatched = query.ndim == 2
     if unbatched:
         query, reference = query.unsqueeze(0), reference.unsqueeze(0)
     check_same_batch(query, reference, "query", "reference")
-    if exclude_self and (
-        query.shape != reference.shape or not torch.equal(query.detach(), reference.detach())
-    ):
+    if exclude_self and (query.shape != reference.shape or not torch.equal(query.detach(), reference.detach())):
         raise ValueError("exclude_self=True requires query to be the reference cloud itself")
     num_ref = reference.shape[1]
     searched = k + 1 if exclude_self else k
@@ -103,6 +99,9 @@ def knn(
     return KNN(dists, idx)
 
 
+_PARALLEL_QUERY_MIN = 50_000
+
+
 def _knn_indices_kdtree(query: torch.Tensor, reference: torch.Tensor, k: int) -> torch.Tensor:
     """``(B, P, k)`` neighbour indices from one cKDTree per batch element."""
     batch, num_query = query.shape[:2]
@@ -110,7 +109,9 @@ def _knn_indices_kdtree(query: torch.Tensor, reference: torch.Tensor, k: int) ->
     reference_np = reference.detach().numpy()
     idx = np.empty((batch, num_query, k), dtype=np.int64)
     for b in range(batch):
-        _, found = cKDTree(reference_np[b]).query(query_np[b], k=k, workers=-1)
+        # Worker threads cost more than they save on small queries.
+        workers = -1 if num_query * k >= _PARALLEL_QUERY_MIN else 1
+        _, found = cKDTree(reference_np[b]).query(query_np[b], k=k, workers=workers)
         idx[b] = found.reshape(num_query, k)
     return torch.from_numpy(idx)
 
@@ -161,9 +162,7 @@ def mean_neighbor_distance(points: torch.Tensor | np.ndarray, k: int = 2) -> tor
     check_points(points, "points")
     num_points = points.shape[-2]
     if k < 1 or num_points <= k:
-        raise ValueError(
-            f"mean_neighbor_distance needs 1 <= k < N, got k={k} for N={num_points} points"
-        )
+        raise ValueError(f"mean_neighbor_distance needs 1 <= k < N, got k={k} for N={num_points} points")
     return knn(points, points, k, exclude_self=True).dists.mean(dim=(-2, -1))
 
 
@@ -185,13 +184,14 @@ def farthest_point_sampling(
     fpsample 1.0's bucket variants do not honour the start index they are given.
 
     Args:
-        points: array of shape ``(N, 3)`` or tensor of shape ``(B, N, 3)`` (also ``(N, 3)``).
+        points: array or tensor of shape ``(N, 3)`` or ``(B, N, 3)`` (each cloud sampled on
+            the CPU).
         n_samples: number of samples, ``1 <= n_samples <= N``.
-        start_index: index of the first sample, or ``None`` (see above).
+        start_index: index of the first sample (of every cloud), or ``None`` (see above).
 
     Returns:
-        Same kind as ``points``: int64 array ``(n_samples,)`` for numpy input; long tensor of
-        shape ``(B, n_samples)`` (or ``(n_samples,)``) on the input's device for tensors.
+        Same kind as ``points``: int64 array or long tensor (on the input's device) of shape
+        ``(n_samples,)`` or ``(B, n_samples)`` giving indices into each cloud.
 
     Raises:
         ValueError: ``n_samples`` outside ``[1, N]`` or ``start_index`` outside ``[0, N)``.
@@ -202,19 +202,15 @@ def farthest_point_sampling(
         raise ValueError(f"n_samples must be between 1 and N={num_points}, got {n_samples}")
     if start_index is not None and not 0 <= start_index < num_points:
         raise ValueError(f"start_index must be in [0, {num_points}), got {start_index}")
-    if isinstance(points, np.ndarray):
-        clouds = points.reshape(-1, num_points, 3)
-        idx = np.stack([_fps_single(cloud, n_samples, start_index) for cloud in clouds])
-        return idx.reshape(*points.shape[:-2], n_samples)
-    clouds = points.detach().cpu().numpy().reshape(-1, num_points, 3)
+    array = points if isinstance(points, np.ndarray) else points.detach().cpu().numpy()
+    clouds = array.reshape(-1, num_points, 3)
     idx = np.stack([_fps_single(cloud, n_samples, start_index) for cloud in clouds])
-    return torch.from_numpy(idx).to(points.device).reshape(*points.shape[:-2], n_samples)
+    idx = idx.reshape(*points.shape[:-2], n_samples)
+    return idx if isinstance(points, np.ndarray) else torch.from_numpy(idx).to(points.device)
 
 
 def _fps_single(cloud: np.ndarray, n_samples: int, start_index: int | None) -> np.ndarray:
     """FPS indices (int64) of one ``(N, 3)`` cloud; see :func:`farthest_point_sampling`."""
-    import fpsample
-
     num_points = cloud.shape[0]
     if start_index is not None or num_points < 64:
         idx = fpsample.fps_sampling(cloud, n_samples, start_index or 0)
@@ -254,9 +250,7 @@ def resample_indices(
         int64 array of shape ``(num_samples,)`` with values in ``[0, num_points)``.
     """
     if num_points < 1 or num_samples < 0:
-        raise ValueError(
-            f"need num_points >= 1 and num_samples >= 0, got {num_points} and {num_samples}"
-        )
+        raise ValueError(f"need num_points >= 1 and num_samples >= 0, got {num_points} and {num_samples}")
     rng = np.random.default_rng(generator)
     if num_points >= num_samples:
         return rng.permutation(num_points)[:num_samples].astype(np.int64)
@@ -290,11 +284,11 @@ def estimate_normals(
     Returns:
         float32 array of shape ``(N, 3)`` giving unit normals.
     """
-    import open3d as o3d
-
     check_points(points, "points", min_points=3, batched=False)
     if k < 3:
         raise ValueError(f"k must be at least 3 to fit a plane, got {k}")
+    import open3d as o3d
+
     cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(points, np.float64)))
     search = (
         o3d.geometry.KDTreeSearchParamKNN(k)
@@ -354,15 +348,11 @@ def bounding_sphere(*clouds: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     lower = torch.stack([cloud.amin(dim=-2) for cloud in clouds]).amin(dim=0)
     upper = torch.stack([cloud.amax(dim=-2) for cloud in clouds]).amax(dim=0)
     center = (lower + upper) / 2
-    radius = torch.stack(
-        [(cloud - center.unsqueeze(-2)).norm(dim=-1).amax(dim=-1) for cloud in clouds]
-    ).amax(dim=0)
+    radius = torch.stack([(cloud - center.unsqueeze(-2)).norm(dim=-1).amax(dim=-1) for cloud in clouds]).amax(dim=0)
     return center, radius
 
 
-def fit_into_cube(
-    *clouds: np.ndarray, half_extent: float = 1.0
-) -> tuple[list[np.ndarray], np.ndarray, float]:
+def fit_into_cube(*clouds: np.ndarray, half_extent: float = 1.0) -> tuple[list[np.ndarray], np.ndarray, float]:
     """Translate and scale clouds together so that all fit in ``[-half_extent, half_extent]^3``.
 
     One common map ``x' = (x - center) * scale`` is applied to every cloud (the paper scales each
@@ -398,9 +388,7 @@ def fit_into_cube(
     return scaled, center, scale
 
 
-def hidden_point_removal(
-    points: np.ndarray, camera: np.ndarray, *, radius_factor: float = 100.0
-) -> np.ndarray:
+def hidden_point_removal(points: np.ndarray, camera: np.ndarray, *, radius_factor: float = 100.0) -> np.ndarray:
     """Indices of the points visible from ``camera`` (Katz et al. 2007, via Open3D).
 
     Args:
@@ -412,9 +400,9 @@ def hidden_point_removal(
     Returns:
         Sorted int64 array of visible point indices.
     """
+    check_points(points, "points", min_points=4, batched=False)
     import open3d as o3d
 
-    check_points(points, "points", min_points=4, batched=False)
     camera = np.asarray(camera, dtype=np.float64).reshape(3)
     cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(points, np.float64)))
     diameter = float(np.linalg.norm(cloud.get_max_bound() - cloud.get_min_bound()))

@@ -28,7 +28,8 @@ option            paper (default)                             alternatives
                                                               ``cloud_points`` (Sample2),
                                                               ``authors``
 ``intersection``  ``convex`` (Eq. 7)                          ``candidates`` (Insec1),
-                                                              ``triplet`` (authors)
+                                                              ``triplet`` (authors),
+                                                              ``pierce`` (linereg)
 ``nu0``           0.5                                         any > 0
 ``k``             2                                           any >= 1
 ``delta_factor``  sqrt(3)/2                                   any > 0
@@ -36,6 +37,13 @@ option            paper (default)                             alternatives
 ``nu``            None (``nu0`` x median, detached)           a fixed absolute scale
 ``detach_weights`` True (Eq. 7 weights are constants)         False: differentiate them too
 ================  ==========================================  ================================
+
+``variant="linereg"`` is the paper's metric with one change, ``intersection="pierce"``: the
+intersection of a line with a candidate ``p0`` and its 2 neighbours is the point where the line
+pierces their triangle, written with its barycentric weights (detached) as a combination of the
+three points. Eq. (7)'s weights ``d_p / sum d`` give a point whose offset from the true crossing
+is of the order of ``delta`` whatever the alignment, which limits how precisely the metric can
+register two different samplings of one surface (see the README's registration benchmark).
 
 ``variant="authors"`` switches every default to what ``code/loss.py`` of the paper repository
 does (reference-notes §1.5), each still overridable:
@@ -76,6 +84,7 @@ INTERSECTIONS = {
     "candidates": line_kernels.MODE_CANDIDATES,
     "convex": line_kernels.MODE_CONVEX,
     "triplet": line_kernels.MODE_TRIPLET,
+    "pierce": line_kernels.MODE_PIERCE,
 }
 REDUCTIONS = ("lines", "groups")
 WELSCH_INPUTS = ("distance", "squared")
@@ -106,7 +115,8 @@ AUTHORS_OVERRIDES: dict[str, Any] = {
     "reduction": "groups",
     "distance_eps": 2e-4,
 }
-VARIANTS = {"paper": {}, "authors": AUTHORS_OVERRIDES}
+LINEREG_OVERRIDES: dict[str, Any] = {"intersection": "pierce"}
+VARIANTS = {"paper": {}, "authors": AUTHORS_OVERRIDES, "linereg": LINEREG_OVERRIDES}
 
 
 @dataclass(frozen=True)
@@ -152,6 +162,8 @@ class LineMetricOptions:
                 raise ValueError(f"{name} must be > 0, got {value}")
         if self.max_hits is not None and self.max_hits < 1:
             raise ValueError(f"max_hits must be >= 1 or None, got {self.max_hits}")
+        if self.intersection == "pierce" and self.k != 2:
+            raise ValueError(f"intersection 'pierce' intersects triangles and needs k=2, got k={self.k}")
         if self.nu is not None and not self.nu > 0:
             raise ValueError(f"nu must be > 0 or None, got {self.nu}")
         if self.distance_eps < 0:
@@ -241,7 +253,7 @@ def intersect_lines(
     )
     members = np.concatenate([anchors[:, None], kernel_neighbors[anchors]], axis=1)
     gathered = points[torch.from_numpy(members).to(points.device)]
-    if options.detach_weights or mode == line_kernels.MODE_CANDIDATES:
+    if options.detach_weights or mode in (line_kernels.MODE_CANDIDATES, line_kernels.MODE_PIERCE):
         w = torch.from_numpy(weights).to(device=points.device, dtype=points.dtype)
     else:
         line_of = torch.from_numpy(np.repeat(np.arange(len(origins)), np.diff(offsets))).to(points.device)
@@ -258,33 +270,53 @@ def intersect_lines(
     return Intersections(offsets=offsets, points=inter, members=members, weights=weights)
 
 
-def _pair_value(
-    src: Intersections, tgt: Intersections, options: LineMetricOptions, anchor: torch.Tensor
-) -> tuple[torch.Tensor, dict[str, float]]:
-    """Steps 2-3 for one sample: the metric value (0-dim tensor) and its statistics."""
+@dataclass
+class LineMatches:
+    """Closest-point matches along the lines that meet both clouds (step 2).
+
+    Attributes:
+        src_index: ``(P,)`` int64 rows of the source intersections.
+        tgt_index: ``(P,)`` int64 rows of the target intersections.
+        line: ``(P,)`` int64 line of each match.
+        is_row: ``(P,)`` bool, True for source->target matches (``sigma_l``), False for
+            target->source ones (``rho_l``).
+        line_weight: ``(P,)`` float64 ``w_l`` of each match's line (ones when disabled).
+        group: ``(P,)`` int64 id of the line's ``(|S_l|, |T_l|)`` pair.
+        lines_kept: number of lines that meet both clouds (within ``max_hits``).
+    """
+
+    src_index: np.ndarray
+    tgt_index: np.ndarray
+    line: np.ndarray
+    is_row: np.ndarray
+    line_weight: np.ndarray
+    group: np.ndarray
+    lines_kept: int
+
+
+def match_intersections(src: Intersections, tgt: Intersections, options: LineMetricOptions) -> LineMatches:
+    """Match the intersections of each line both ways (Eq. 3's ``sigma_l`` and ``rho_l``)."""
     ns, nt = src.counts, tgt.counts
     keep = (ns >= 1) & (nt >= 1)
     if options.max_hits is not None:
         keep &= (ns <= options.max_hits) & (nt <= options.max_hits)
-    stats = {
-        "lines": float(len(ns)),
-        "lines_hit_both": float(keep.sum()),
-        "lines_hit_src": float((ns > 0).sum()),
-        "lines_hit_tgt": float((nt > 0).sum()),
-        "intersections_src": float(ns.sum()),
-        "intersections_tgt": float(nt.sum()),
-    }
-    if not keep.any():
-        # No line meets both clouds: a defined zero with a zero gradient, still on the graph.
-        return anchor.sum() * 0.0, {**stats, "nu": 0.0}
-    pair_counts = np.where(keep, ns + nt, 0)
-    pair_offsets = np.concatenate([[0], np.cumsum(pair_counts)])
-    src_np = src.points.detach().double().cpu().numpy()
-    tgt_np = tgt.points.detach().double().cpu().numpy()
-    s_idx, t_idx, line_of = line_kernels.match_along_lines(src.offsets, tgt.offsets, src_np, tgt_np, pair_offsets)
-    device = src.points.device
-    diff = src.points[torch.from_numpy(s_idx).to(device)] - tgt.points[torch.from_numpy(t_idx).to(device)]
-    dist_sq = diff.square().sum(dim=1)
+    pair_offsets = np.concatenate([[0], np.cumsum(np.where(keep, ns + nt, 0))])
+    s_idx, t_idx, line_of = line_kernels.match_along_lines(
+        src.offsets,
+        tgt.offsets,
+        src.points.detach().double().cpu().numpy(),
+        tgt.points.detach().double().cpu().numpy(),
+        pair_offsets,
+    )
+    is_row = (np.arange(len(line_of)) - pair_offsets[line_of]) < ns[line_of]
+    line_w = np.exp(-np.abs(ns - nt) / 2.0)[line_of] if options.line_weight else np.ones(len(line_of))
+    group = ns[line_of] * (int(nt.max(initial=0)) + 1) + nt[line_of]
+    return LineMatches(s_idx, t_idx, line_of, is_row, line_w, group, int(keep.sum()))
+
+
+def welsch_two_c(dist_sq: torch.Tensor, options: LineMetricOptions) -> tuple[torch.Tensor, torch.Tensor]:
+    """The detached Welsch scale ``nu`` and the denominator ``2 nu^2`` (or ``2 c`` for squared
+    input) so that ``psi = 1 - exp(-d^2 / two_c)``."""
     if options.nu is not None:
         scale = dist_sq.new_tensor(options.nu)
     elif options.welsch_input == "distance":
@@ -292,29 +324,102 @@ def _pair_value(
     else:
         scale = options.nu0 * dist_sq.detach().median()
     two_c = 2.0 * (scale.square() if options.welsch_input == "distance" else scale)
-    two_c = two_c.clamp_min(torch.finfo(dist_sq.dtype).tiny)
-    psi = 1.0 - torch.exp(-dist_sq / two_c)
-    if options.line_weight:
-        line_w = np.exp(-np.abs(ns - nt) / 2.0)[line_of]
-    else:
-        line_w = np.ones(len(line_of))
-    line_w = torch.from_numpy(line_w).to(device=device, dtype=psi.dtype)
+    return scale, two_c.clamp_min(torch.finfo(dist_sq.dtype).tiny)
+
+
+def _hit_stats(src: Intersections, tgt: Intersections, matches: LineMatches) -> dict[str, float]:
+    ns, nt = src.counts, tgt.counts
+    return {
+        "lines": float(len(ns)),
+        "lines_hit_both": float(matches.lines_kept),
+        "lines_hit_src": float((ns > 0).sum()),
+        "lines_hit_tgt": float((nt > 0).sum()),
+        "intersections_src": float(ns.sum()),
+        "intersections_tgt": float(nt.sum()),
+    }
+
+
+def _pair_value(
+    src: Intersections, tgt: Intersections, options: LineMetricOptions, anchor: torch.Tensor
+) -> tuple[torch.Tensor, dict[str, float]]:
+    """Steps 2-3 for one sample: the metric value (0-dim tensor) and its statistics."""
+    matches = match_intersections(src, tgt, options)
+    stats = _hit_stats(src, tgt, matches)
+    if matches.lines_kept == 0:
+        # No line meets both clouds: a defined zero with a zero gradient, still on the graph.
+        return anchor.sum() * 0.0, {**stats, "nu": 0.0}
+    device = src.points.device
+    diff = (
+        src.points[torch.from_numpy(matches.src_index).to(device)]
+        - tgt.points[torch.from_numpy(matches.tgt_index).to(device)]
+    )
+    dist_sq = diff.square().sum(dim=1)
+    scale, two_c = welsch_two_c(dist_sq, options)
+    weighted = torch.from_numpy(matches.line_weight).to(dist_sq) * (1.0 - torch.exp(-dist_sq / two_c))
     stats["nu"] = float(scale)
     if options.reduction == "lines":
-        return (line_w * psi).sum() / float(keep.sum()), stats
+        return weighted.sum() / float(matches.lines_kept), stats
     # "groups": the authors' per-(|S_l|, |T_l|) averaging, rows (source->target) and columns apart.
-    slot = np.arange(len(line_of)) - pair_offsets[line_of]
-    is_row = slot < ns[line_of]
-    max_count = int(max(ns.max(), nt.max()))
-    group = (ns[line_of] - 1) * max_count + (nt[line_of] - 1)
-    bucket = torch.from_numpy(group * 2 + (~is_row)).to(device)
-    n_buckets = 2 * max_count * max_count
-    sums = torch.zeros(n_buckets, dtype=psi.dtype, device=device).index_add(0, bucket, line_w * psi)
-    counts = torch.zeros(n_buckets, dtype=psi.dtype, device=device).index_add(0, bucket, torch.ones_like(psi))
-    means = sums / counts.clamp_min(1.0)
-    per_group = means.view(-1, 2).sum(dim=1)
-    present = counts.view(-1, 2).sum(dim=1) > 0
-    return per_group[present].sum() / present.sum(), stats
+    _, bucket = np.unique(matches.group * 2 + (~matches.is_row), return_inverse=True)
+    bucket_t = torch.from_numpy(bucket.reshape(-1)).to(device)
+    n_buckets = int(bucket.max()) + 1
+    sums = torch.zeros(n_buckets, dtype=weighted.dtype, device=device).index_add(0, bucket_t, weighted)
+    counts = torch.zeros(n_buckets, dtype=weighted.dtype, device=device).index_add(
+        0, bucket_t, torch.ones_like(weighted)
+    )
+    n_groups = len(np.unique(matches.group))
+    return (sums / counts).sum() / n_groups, stats
+
+
+@dataclass
+class Correspondences:
+    """Weighted point pairs from the line intersections, for IRLS/Procrustes solvers.
+
+    Attributes:
+        src: ``(P, 3)`` source-side intersection points (detached).
+        tgt: ``(P, 3)`` matched target-side intersection points.
+        weights: ``(P,)`` ``w_l * exp(-d^2 / (2 nu^2))``, Welsch's IRLS weights.
+        stats: hit statistics of the evaluation.
+    """
+
+    src: torch.Tensor
+    tgt: torch.Tensor
+    weights: torch.Tensor
+    stats: dict[str, float]
+
+
+def line_correspondences(
+    src: torch.Tensor,
+    tgt: torch.Tensor,
+    *,
+    options: LineMetricOptions | None = None,
+    generator: torch.Generator | None = None,
+) -> Correspondences:
+    """Correspondences implied by the metric for one pair ``src (N, 3)``, ``tgt (M, 3)``.
+
+    Replacing Welsch's function by its quadratic surrogate at the current pose gives the
+    weighted least-squares problem of the supplementary's SVD solver: minimise
+    ``sum w (R x + t - y)^2`` over these pairs.
+    """
+    options = options or LineMetricOptions()
+    check_points(src, "src", batched=False, min_points=options.k + 1)
+    check_points(tgt, "tgt", batched=False, min_points=options.k + 1)
+    generator = generator or torch.Generator().manual_seed(int(torch.randint(0, 2**62, ()).item()))
+    origins, dirs = sample_lines(
+        src, tgt, options.num_lines, generator, sampling=options.sampling, radius_factor=options.radius_factor
+    )
+    src_inter = intersect_lines(src.detach(), origins, dirs, options)
+    tgt_inter = intersect_lines(tgt.detach(), origins, dirs, options)
+    matches = match_intersections(src_inter, tgt_inter, options)
+    x = src_inter.points[torch.from_numpy(matches.src_index).to(src.device)]
+    y = tgt_inter.points[torch.from_numpy(matches.tgt_index).to(src.device)]
+    dist_sq = (x - y).square().sum(dim=1)
+    stats = _hit_stats(src_inter, tgt_inter, matches)
+    if matches.lines_kept == 0:
+        return Correspondences(x, y, dist_sq, {**stats, "nu": 0.0})
+    scale, two_c = welsch_two_c(dist_sq, options)
+    weights = torch.from_numpy(matches.line_weight).to(dist_sq) * torch.exp(-dist_sq / two_c)
+    return Correspondences(x, y, weights, {**stats, "nu": float(scale)})
 
 
 def line_intersection_metric(

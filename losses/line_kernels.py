@@ -28,6 +28,7 @@ import numpy as np
 MODE_CANDIDATES = 0  # Insec1: every candidate point is an intersection
 MODE_CONVEX = 1  # paper Eq. (7): candidates whose k nearest neighbours are candidates too
 MODE_TRIPLET = 2  # authors' code: the point and its k neighbours all within the anchor's radius
+MODE_PIERCE = 3  # as MODE_CONVEX, but the weights locate where the line pierces the triangle
 
 _GRID_CELL_CAP_PER_POINT = 8
 _MIN_GRID_CELLS = 4096
@@ -129,6 +130,41 @@ def _slab(o, u, lo, hi, t0, t1):
 
 
 @numba.njit(cache=True)
+def _pierce_weights(points, a, b, c, ox, oy, oz, ux, uy, uz, out):
+    """Barycentric weights of the point where the line pierces the plane of triangle ``abc``.
+
+    Writes ``out[0:3]`` and returns True, or returns False (leaving ``out`` alone) when the
+    triangle is degenerate or nearly parallel to the line.
+    """
+    e1x = points[b, 0] - points[a, 0]
+    e1y = points[b, 1] - points[a, 1]
+    e1z = points[b, 2] - points[a, 2]
+    e2x = points[c, 0] - points[a, 0]
+    e2y = points[c, 1] - points[a, 1]
+    e2z = points[c, 2] - points[a, 2]
+    # Moller-Trumbore: solve o + t u = a + w1 e1 + w2 e2.
+    px = uy * e2z - uz * e2y
+    py = uz * e2x - ux * e2z
+    pz = ux * e2y - uy * e2x
+    det = e1x * px + e1y * py + e1z * pz
+    scale = math.sqrt((e1x * e1x + e1y * e1y + e1z * e1z) * (e2x * e2x + e2y * e2y + e2z * e2z))
+    if abs(det) <= 1e-3 * scale:
+        return False
+    sx = ox - points[a, 0]
+    sy = oy - points[a, 1]
+    sz = oz - points[a, 2]
+    w1 = (sx * px + sy * py + sz * pz) / det
+    qx = sy * e1z - sz * e1y
+    qy = sz * e1x - sx * e1z
+    qz = sx * e1y - sy * e1x
+    w2 = (ux * qx + uy * qy + uz * qz) / det
+    out[0] = 1.0 - w1 - w2
+    out[1] = w1
+    out[2] = w2
+    return True
+
+
+@numba.njit(cache=True)
 def _scan_line(
     line,
     origins,
@@ -209,7 +245,7 @@ def _scan_line(
             for j in range(k):
                 nb = neighbors[i, j]
                 dn = _line_distance(points, nb, ox, oy, oz, ux, uy, uz, eps2)
-                limit = radius[nb] if mode == MODE_CONVEX else r
+                limit = r if mode == MODE_TRIPLET else radius[nb]
                 if dn >= limit:
                     ok = False
                     break
@@ -219,6 +255,11 @@ def _scan_line(
             if write:
                 row = out_start + count
                 out_anchor[row] = i
+                if mode == MODE_PIERCE and _pierce_weights(
+                    points, i, neighbors[i, 0], neighbors[i, 1], ox, oy, oz, ux, uy, uz, out_weight[row]
+                ):
+                    count += 1
+                    continue
                 if total > 0.0:
                     out_weight[row, 0] = d / total
                     for j in range(k):

@@ -33,8 +33,7 @@ def _extra(output: RegistrationOutput, key: str, loss_name: str, producer: str) 
     """``output.extras[key]``, or a ``ValueError`` saying which model produces it."""
     if key not in output.extras:
         raise ValueError(
-            f"{loss_name} needs output.extras[{key!r}], which {producer} returns; got extras "
-            f"{sorted(output.extras)}"
+            f"{loss_name} needs output.extras[{key!r}], which {producer} returns; got extras {sorted(output.extras)}"
         )
     return output.extras[key]
 
@@ -58,15 +57,11 @@ def outlier_penalty(perm: torch.Tensor) -> torch.Tensor:
     return (unmatched_tgt + unmatched_src).mean()
 
 
-def _discounted_outlier_penalty(
-    output: RegistrationOutput, discount: float, loss_name: str
-) -> torch.Tensor:
+def _discounted_outlier_penalty(output: RegistrationOutput, discount: float, loss_name: str) -> torch.Tensor:
     """Sum over iterations of ``discount ** (n - 1 - i) * outlier_penalty(perm_i)``."""
     perms = _extra(output, "perm_matrices", loss_name, "RPM-Net")
     if len(perms) != len(output.transforms):
-        raise ValueError(
-            f"{loss_name}: {len(perms)} perm_matrices for {len(output.transforms)} transforms"
-        )
+        raise ValueError(f"{loss_name}: {len(perms)} perm_matrices for {len(output.transforms)} transforms")
     weights = iteration_weights(len(perms), discount)
     return sum(w * outlier_penalty(perm) for w, perm in zip(weights, perms, strict=True))
 

@@ -37,6 +37,20 @@ def _line_distance(points: torch.Tensor, origins: torch.Tensor, dirs: torch.Tens
     return ((rel.square().sum(-1) - t.square()).clamp_min(0.0) + eps).sqrt()
 
 
+def _pierce_weights(triangles: torch.Tensor, origins: torch.Tensor, dirs: torch.Tensor):
+    """Barycentric weights ``(C, N, 3)`` of where each line pierces each triangle ``(N, 3, 3)``,
+    and ``(C, N, 1)`` validity (not degenerate, not parallel)."""
+    a, b, c = triangles.unbind(1)
+    e1, e2 = (b - a)[None], (c - a)[None]
+    s = origins[:, None] - a[None]
+    u = dirs[:, None].expand_as(s)
+    det = (e1 * torch.cross(u, e2, dim=-1)).sum(-1)
+    w1 = (s * torch.cross(u, e2, dim=-1)).sum(-1) / det
+    w2 = (u * torch.cross(s, e1, dim=-1)).sum(-1) / det
+    ok = det.abs() > 1e-3 * (e1.norm(dim=-1) * e2.norm(dim=-1))
+    return ok[..., None], torch.stack([1.0 - w1 - w2, w1, w2], dim=-1)
+
+
 def _chunk_intersections(points, members, radius, origins, dirs, options):
     """Padded intersections of a chunk of lines: ``(C, H, 3)`` points and ``(C, H)`` validity."""
     dist = _line_distance(points.detach(), origins, dirs, options.distance_eps)
@@ -51,6 +65,8 @@ def _chunk_intersections(points, members, radius, origins, dirs, options):
             member_dist = _line_distance(points, origins, dirs, options.distance_eps)[:, members]
         total = member_dist.sum(-1, keepdim=True)
         w = torch.where(total > 0, member_dist / total.clamp_min(1e-300), 1.0 / members.shape[1])
+        if options.intersection == "pierce":
+            w = torch.where(*_pierce_weights(points.detach()[members], origins, dirs), w)
         inter = (w[..., None] * points[members][None]).sum(-2)
     counts = mask.sum(1)
     width = max(int(counts.max()), 1)

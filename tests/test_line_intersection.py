@@ -41,10 +41,13 @@ CASES = [
     LineMetricOptions(k=3, delta_factor=1.2),
     LineMetricOptions.for_variant("authors"),
     LineMetricOptions(detach_weights=False),
+    LineMetricOptions.for_variant("linereg"),
 ]
 
 
-@pytest.mark.parametrize("options", CASES, ids=["paper", "insec1", "no_weight", "k3", "authors", "live_weights"])
+@pytest.mark.parametrize(
+    "options", CASES, ids=["paper", "insec1", "no_weight", "k3", "authors", "live_weights", "linereg"]
+)
 def test_sparse_matches_dense_values_and_gradients(options):
     src0 = blob(150, 0)
     tgt = transform_points(rigid([4, -3, 6], [0.05, 0.0, -0.03]), blob(180, 1))
@@ -175,8 +178,8 @@ def test_every_sampler_gives_unit_lines_near_the_clouds(sampling):
 @pytest.mark.parametrize(
     "overrides",
     [{"sampling": s} for s in SAMPLERS]
-    + [{"intersection": i} for i in ("convex", "candidates", "triplet")]
-    + [{"variant": "authors"}],
+    + [{"intersection": i} for i in ("convex", "candidates", "triplet", "pierce")]
+    + [{"variant": "authors"}, {"variant": "linereg"}],
 )
 def test_every_configuration_runs_and_is_differentiable(overrides):
     src = blob(300, 20).float().requires_grad_(True)

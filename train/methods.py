@@ -1,0 +1,95 @@
+"""Registration methods for one pair of clouds: one interface, one registry.
+
+Every method (the optimisation-based registration with any loss, and the classical
+baselines) is a callable ``method(src, tgt, src_normals=None, tgt_normals=None)`` on numpy
+``(N, 3)`` / ``(M, 3)`` clouds returning a :class:`MethodResult` whose ``transform`` maps the
+source onto the target (``tgt ≈ R @ src + t``). Build one with
+``build_method({"name": ..., **kwargs})``.
+
+Fairness (reference-notes §3c): by default every method sees both clouds translated to their
+centroids, and the translation is folded back into the returned transform, so methods that do
+not centre internally are not handicapped by the initial offset.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from linereg.checks import check_points
+from linereg.registry import Registry
+
+
+@dataclass
+class MethodResult:
+    """Outcome of one registration.
+
+    Attributes:
+        transform: ``(4, 4)`` float64 source-to-target transform.
+        seconds: wall-clock time of the registration.
+        info: method-specific extras (loss curve, iterations, fitness, ...).
+    """
+
+    transform: np.ndarray
+    seconds: float = 0.0
+    info: dict[str, Any] = field(default_factory=dict)
+
+
+Method = Callable[..., MethodResult]
+METHODS: Registry[Method] = Registry("registration method")
+
+
+def translation(offset: np.ndarray) -> np.ndarray:
+    """``(4, 4)`` float64 pure translation by ``offset (3,)``."""
+    T = np.eye(4)
+    T[:3, 3] = offset
+    return T
+
+
+def run_centered(
+    solve: Callable[[np.ndarray, np.ndarray, np.ndarray | None, np.ndarray | None], MethodResult],
+    src: np.ndarray,
+    tgt: np.ndarray,
+    src_normals: np.ndarray | None = None,
+    tgt_normals: np.ndarray | None = None,
+    *,
+    center: bool = True,
+) -> MethodResult:
+    """Validate the inputs, optionally centre both clouds, run ``solve`` and time it.
+
+    ``solve`` receives the (centred) clouds and returns the transform between them; the result
+    is mapped back to the original frames: ``T = T(c_tgt) @ T_centred @ T(-c_src)``.
+    """
+    check_points(src, "source", batched=False)
+    check_points(tgt, "target", batched=False)
+    src = np.asarray(src, dtype=np.float64)
+    tgt = np.asarray(tgt, dtype=np.float64)
+    c_src = src.mean(axis=0) if center else np.zeros(3)
+    c_tgt = tgt.mean(axis=0) if center else np.zeros(3)
+    start = time.perf_counter()
+    result = solve(src - c_src, tgt - c_tgt, src_normals, tgt_normals)
+    seconds = time.perf_counter() - start
+    transform = translation(c_tgt) @ np.asarray(result.transform, dtype=np.float64) @ translation(-c_src)
+    return MethodResult(transform=transform, seconds=seconds, info=result.info)
+
+
+def build_method(config: Mapping[str, Any]) -> Method:
+    """Build a registered method from ``{name: ..., **kwargs}``.
+
+    Raises:
+        KeyError: unknown name (the message lists the registered methods).
+        TypeError: unknown keyword arguments, naming the method.
+    """
+    config = dict(config)
+    if "name" not in config:
+        raise KeyError(f"a method config needs a 'name' (one of {', '.join(METHODS.names())})")
+    name = config.pop("name")
+    builder = METHODS.get(name)
+    try:
+        return builder(**config)
+    except TypeError as err:
+        raise TypeError(f"registration method {name!r}: {err}") from err

@@ -1,7 +1,7 @@
 """Loss registry: the line-intersection metric, Chamfer (CD), Welsch-Chamfer (CD-W) and the
 backbones' supervised losses. ``build_loss({"name": ..., **kwargs})`` builds any of them."""
 
-from . import chamfer, line_intersection
+from . import chamfer, line_intersection, supervised
 from .base import LOSSES, AlignmentLoss, Loss, WeightedSum, build_loss, iteration_weights
 
 __all__ = [
@@ -13,4 +13,5 @@ __all__ = [
     "chamfer",
     "iteration_weights",
     "line_intersection",
+    "supervised",
 ]

@@ -50,7 +50,7 @@ class Stage:
 
 DEFAULT_STAGES: tuple[Stage, ...] = (
     Stage(loss={"name": "chamfer_welsch", "nu0": 2.0}, iterations=60, lr=0.03),
-    Stage(loss={"name": "line_intersection", "num_lines": 8000}, iterations=100, lr=0.01),
+    Stage(loss={"name": "line_intersection", "variant": "linereg", "num_lines": 5000}, iterations=150, lr=0.01),
 )
 PAPER_STAGES: tuple[Stage, ...] = (Stage(loss={"name": "line_intersection"}, iterations=500, lr=0.02),)
 

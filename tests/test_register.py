@@ -1,0 +1,157 @@
+"""The optimisation-based registration solvers and ``python -m train.register``."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+import torch
+from hydra import compose, initialize_config_dir
+from omegaconf import open_dict
+
+from linereg.io import read_point_cloud, read_transform, write_point_cloud, write_transform
+from linereg.metrics import registration_errors
+from linereg.paths import REPO_ROOT
+from linereg.se3 import euler_to_rotmat, rt_to_matrix
+from train.methods import build_method
+from train.register import register_files
+
+
+def surface(n: int, seed: int) -> np.ndarray:
+    """Samples of an asymmetric bumpy ellipsoid (float32, unit scale)."""
+    rng = np.random.default_rng(seed)
+    x = rng.normal(size=(n, 3))
+    x /= np.linalg.norm(x, axis=1, keepdims=True)
+    bump = 1.0 + 0.25 * np.sin(3.0 * x[:, 0]) * np.cos(2.0 * x[:, 1])
+    return (x * bump[:, None] * np.array([1.4, 1.0, 0.7])).astype(np.float32)
+
+
+def pose(angles_deg, t) -> np.ndarray:
+    R = euler_to_rotmat(torch.tensor(angles_deg, dtype=torch.float64) * math.pi / 180)
+    return rt_to_matrix(R, torch.tensor(t, dtype=torch.float64)).numpy()
+
+
+def apply(T: np.ndarray, x: np.ndarray) -> np.ndarray:
+    return (x @ T[:3, :3].T + T[:3, 3]).astype(np.float32)
+
+
+def err_r(T_pred: np.ndarray, T_gt: np.ndarray, src: np.ndarray) -> float:
+    errors = registration_errors(
+        torch.from_numpy(T_pred)[None], torch.from_numpy(T_gt)[None], torch.from_numpy(src).double()[None]
+    )
+    return float(errors["err_r_deg"][0])
+
+
+FAST_ADAM = {
+    "name": "adam_loss",
+    "stages": [
+        {"loss": {"name": "chamfer_welsch", "nu0": 2.0}, "iterations": 40, "lr": 0.03},
+        {"loss": {"name": "line_intersection", "variant": "linereg", "num_lines": 3000}, "iterations": 60, "lr": 0.01},
+    ],
+    "num_points": 512,
+}
+
+
+@pytest.mark.parametrize(
+    "config", [FAST_ADAM, {"name": "svd_irls", "iterations": 25, "num_lines": 4000, "num_points": 512}]
+)
+def test_solvers_recover_a_known_pose(config):
+    src = surface(800, 0)
+    T = pose([20, -15, 10], [0.3, -0.2, 0.1])
+    tgt = apply(T, surface(800, 0))
+    result = build_method(config)(src, tgt)
+    assert err_r(result.transform, T, src) < 1.0
+    assert result.seconds > 0 and len(result.info["loss_curve"]) > 0
+
+
+def test_identical_clouds_give_the_identity():
+    cloud = surface(600, 1)
+    result = build_method({**FAST_ADAM, "num_points": 400})(cloud, cloud)
+    np.testing.assert_allclose(result.transform, np.eye(4), atol=2e-3)
+
+
+def test_supervised_loss_is_rejected():
+    with pytest.raises(ValueError, match="ground truth"):
+        build_method({"name": "adam_loss", "stages": [{"loss": {"name": "gt_dcp"}, "iterations": 1, "lr": 0.1}]})
+
+
+def test_unknown_stage_preset_and_keys():
+    with pytest.raises(ValueError, match="preset"):
+        build_method({"name": "adam_loss", "stages": "fastest"})
+    with pytest.raises(TypeError, match="stage key"):
+        build_method(
+            {"name": "adam_loss", "stages": [{"loss": {"name": "chamfer"}, "iterations": 1, "lr": 0.1, "mom": 1}]}
+        )
+
+
+def _compose(**overrides):
+    with initialize_config_dir(version_base="1.3", config_dir=str(REPO_ROOT / "configs")):
+        cfg = compose("register", overrides=[f"{k}={v}" for k, v in overrides.items()])
+    with open_dict(cfg):
+        cfg.progress = False
+        cfg.picture = False
+    return cfg
+
+
+def test_register_command_writes_its_outputs(tmp_path):
+    src = surface(700, 2)
+    T = pose([15, 10, -5], [0.1, 0.2, -0.1])
+    write_point_cloud(tmp_path / "a.ply", src)
+    np.save(tmp_path / "b.npy", apply(T, surface(900, 2)[:900]))
+    write_transform(tmp_path / "gt.txt", T)
+    cfg = _compose(source=tmp_path / "a.ply", target=tmp_path / "b.npy", gt=tmp_path / "gt.txt", num_points=512)
+    _, report = register_files(cfg, tmp_path / "run")
+    out = tmp_path / "run"
+    estimate = read_transform(out / "transform.txt")
+    assert err_r(estimate, T, src) < 1.0
+    registered = read_point_cloud(out / "registered.ply")
+    np.testing.assert_allclose(registered.xyz, apply(estimate, src), atol=1e-5)
+    saved = json.loads((out / "result.json").read_text())
+    assert saved["metrics"]["err_r_deg"] < 1.0 and len(saved["loss_curve"]) > 0 and saved["seconds"] > 0
+    assert report["source_points"] == 700 and report["target_points"] == 900
+
+
+def test_register_with_a_chosen_loss_and_the_svd_solver(tmp_path):
+    src = surface(500, 3)
+    write_point_cloud(tmp_path / "a.xyz", src)
+    write_point_cloud(tmp_path / "b.xyz", apply(pose([5, 0, 0], [0.05, 0, 0]), src))
+    for overrides in ({"loss": "chamfer", "iterations": 60}, {"solver": "svd", "svd.iterations": 10}):
+        cfg = _compose(source=tmp_path / "a.xyz", target=tmp_path / "b.xyz", num_points=400, **overrides)
+        _, report = register_files(cfg, tmp_path / "run")
+        assert np.isfinite(np.array(report["transform"])).all()
+
+
+@pytest.mark.parametrize(
+    ("make", "message"),
+    [
+        (lambda p: None, "no such file"),
+        (lambda p: write_point_cloud(p, np.zeros((1, 3), np.float32)), "at least 3"),
+        (lambda p: np.save(p.with_suffix(".npy"), np.full((10, 3), np.nan)), "NaN"),
+    ],
+    ids=["missing", "one-point", "nan"],
+)
+def test_bad_sources_give_clear_errors(tmp_path, make, message):
+    target = tmp_path / "b.ply"
+    write_point_cloud(target, surface(100, 4))
+    source = tmp_path / "a.ply"
+    make(source)
+    if not source.exists() and source.with_suffix(".npy").exists():
+        source = source.with_suffix(".npy")
+    cfg = _compose(source=source, target=target)
+    with pytest.raises((FileNotFoundError, ValueError), match=message):
+        register_files(cfg, tmp_path / "run")
+
+
+def test_non_rigid_ground_truth_is_rejected(tmp_path):
+    write_point_cloud(tmp_path / "a.ply", surface(100, 5))
+    (tmp_path / "gt.txt").write_text("2 0 0 0\n0 1 0 0\n0 0 1 0\n0 0 0 1\n")
+    cfg = _compose(source=tmp_path / "a.ply", target=tmp_path / "a.ply", gt=tmp_path / "gt.txt")
+    with pytest.raises(ValueError, match="rigid"):
+        register_files(cfg, tmp_path / "run")
+
+
+def test_unknown_config_key_is_an_error():
+    with pytest.raises(Exception, match="nonsense"):
+        _compose(source="a", target="b", nonsense=1)

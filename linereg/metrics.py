@@ -190,31 +190,34 @@ def summarize(errors: Mapping[str, torch.Tensor | np.ndarray]) -> dict[str, floa
     return summary
 
 
-def paper_table(rows: Mapping[str, Mapping[str, float]]) -> str:
+def paper_table(rows: Mapping[str, Mapping[str, float]], stat: str = "mean") -> str:
     """A markdown table in the layout of the paper's tables, from :func:`summarize` outputs.
 
     Columns: Method | Err_R (deg) | Err_t (x10^-1) (l1, l2) | Err_pw (x10^-1) (l1, l2), using
-    the ``*_mean`` values; translation and pointwise errors are multiplied by 10 as the paper
+    the ``*_{stat}`` values; translation and pointwise errors are multiplied by 10 as the paper
     prints them. Numbers have three decimals.
 
     Args:
-        rows: mapping from a method name to its summary (needs ``err_*_mean`` for every key in
-            ``ERROR_KEYS``).
+        rows: mapping from a method name to its summary (needs ``err_*_{stat}`` for every key
+            in ``ERROR_KEYS``).
+        stat: ``mean`` (the paper's tables) or ``median``.
 
     Returns:
         The table as a string (header, separator, one line per method).
     """
+    if stat not in ("mean", "median"):
+        raise ValueError(f"stat must be 'mean' or 'median', got {stat!r}")
     lines = [
         "| Method | Err_R (deg) | Err_t (x10^-1) (l1, l2) | Err_pw (x10^-1) (l1, l2) |",
         "|---|---|---|---|",
     ]
     for method, summary in rows.items():
-        missing = [f"{key}_mean" for key in ERROR_KEYS if f"{key}_mean" not in summary]
+        missing = [f"{key}_{stat}" for key in ERROR_KEYS if f"{key}_{stat}" not in summary]
         if missing:
             raise KeyError(f"summary of {method!r} lacks {', '.join(missing)}")
         lines.append(
-            f"| {method} | {summary['err_r_deg_mean']:.3f} "
-            f"| {10 * summary['err_t_l1_mean']:.3f}, {10 * summary['err_t_l2_mean']:.3f} "
-            f"| {10 * summary['err_pw_l1_mean']:.3f}, {10 * summary['err_pw_l2_mean']:.3f} |"
+            f"| {method} | {summary[f'err_r_deg_{stat}']:.3f} "
+            f"| {10 * summary[f'err_t_l1_{stat}']:.3f}, {10 * summary[f'err_t_l2_{stat}']:.3f} "
+            f"| {10 * summary[f'err_pw_l1_{stat}']:.3f}, {10 * summary[f'err_pw_l2_{stat}']:.3f} |"
         )
     return "\n".join(lines)

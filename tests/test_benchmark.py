@@ -1,0 +1,265 @@
+"""Benchmark harness (train/benchmark.py): records, written results, pair sources, CLI."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+import trimesh
+from scipy.spatial import cKDTree
+
+from datasets.procedural import procedural_shape
+from linereg.io import write_point_cloud, write_transform
+from linereg.metrics import ERROR_KEYS
+from linereg.paths import REPO_ROOT
+from linereg.random_poses import random_transform_paper
+from linereg.structures import PairSample
+from train.benchmark import (
+    airplane_pairs,
+    benchmark,
+    build_methods,
+    dragon_pairs,
+    expand_folder_argument,
+    human_pairs,
+    object_diameter,
+    run_benchmark,
+    select_indices,
+    threedmatch_pairs,
+    write_results,
+)
+from train.methods import MethodResult
+
+RECORD_KEYS = {"pair", "method", "seconds", "diameter", "transform", "gt_transform", "meta", "info", *ERROR_KEYS}
+
+
+def _tiny_pair(seed: int, num_points: int = 300) -> PairSample:
+    """A procedural shape, its points moved by the paper's composite transform."""
+    mesh = procedural_shape(np.random.default_rng(seed))
+    src, _ = trimesh.sample.sample_surface_even(mesh, num_points, seed=seed)
+    transform = random_transform_paper(1, seed, max_angle_deg=10.0, dtype=torch.float64)[0].numpy()
+    tgt = src @ transform[:3, :3].T + transform[:3, 3]
+    return PairSample(
+        src_xyz=src.astype(np.float32),
+        tgt_xyz=tgt.astype(np.float32),
+        gt_transform=transform.astype(np.float32),
+        meta={"shape": f"procedural_{seed}"},
+    )
+
+
+@pytest.fixture(scope="module")
+def tiny_records():
+    pairs = [_tiny_pair(1), _tiny_pair(2)]
+    methods = build_methods(["icp_point", "plane"], {"plane": {"name": "icp_plane", "max_iterations": 50}})
+    return run_benchmark(pairs, methods, progress=False)
+
+
+def test_run_benchmark_records_every_pair_and_method(tiny_records):
+    assert [(r["pair"], r["method"]) for r in tiny_records] == [
+        (0, "icp_point"),
+        (0, "plane"),
+        (1, "icp_point"),
+        (1, "plane"),
+    ]
+    for record in tiny_records:
+        assert set(record) == RECORD_KEYS
+        assert record["err_r_deg"] < 1.0
+        assert np.asarray(record["transform"]).shape == (4, 4)
+        assert record["diameter"] > 0
+    json.dumps(tiny_records)
+
+
+def test_write_results_writes_json_table_and_plot(tiny_records, tmp_path):
+    paths = write_results(tiny_records, tmp_path / "out", settings={"benchmark": {"name": "tiny"}})
+
+    assert set(paths) == {"json", "table", "plot"}
+    content = json.loads(paths["json"].read_text())
+    assert set(content) == {"settings", "summary", "alpha_recall", "records"}
+    assert content["settings"]["benchmark"]["name"] == "tiny"
+    assert set(content["summary"]) == {"icp_point", "plane"}
+    summary = content["summary"]["plane"]
+    for key in (*ERROR_KEYS, "seconds"):
+        assert {f"{key}_mean", f"{key}_median"} <= set(summary)
+    assert summary["pairs"] == 2
+    assert summary["success_1deg"] == 1.0
+    recall = content["alpha_recall"]
+    assert len(recall["alphas"]) == len(recall["recall"]["icp_point"]) == 201
+    curve = recall["recall"]["icp_point"]
+    assert np.all(np.diff(curve) >= 0)
+    assert curve[-1] == 1.0
+    assert len(content["records"]) == 4
+    table = paths["table"].read_text()
+    assert "| icp_point |" in table and "| plane |" in table
+    assert "Median" in table and "time mean (s)" in table
+    assert paths["plot"].read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_relative_alpha_divides_by_the_diameter(tiny_records, tmp_path):
+    alphas = [0.0, 1e-12, 1.0]
+    paths = write_results(tiny_records, tmp_path, alphas=alphas, relative_alpha=True)
+
+    recall = json.loads(paths["json"].read_text())["alpha_recall"]
+    assert recall["relative"] is True
+    assert recall["recall"]["plane"] == [0.0, 0.0, 1.0]
+
+
+def test_run_benchmark_rejects_unlabelled_pairs():
+    pair = _tiny_pair(3)
+    pair.gt_transform = None
+    with pytest.raises(ValueError, match="needs ground truth"):
+        run_benchmark([pair], build_methods(["icp_point"], {}), progress=False)
+
+
+def test_run_benchmark_names_the_failing_method():
+    def broken(src, tgt, src_normals=None, tgt_normals=None) -> MethodResult:
+        raise ArithmeticError("diverged")
+
+    with pytest.raises(RuntimeError, match=r"method 'broken' failed on pair 0.*diverged"):
+        run_benchmark([_tiny_pair(4)], {"broken": broken}, progress=False)
+
+
+def test_build_methods_rejects_unknown_names():
+    with pytest.raises(KeyError, match="unknown method 'nope'"):
+        build_methods(["nope"], {"fast": {"name": "icp_point"}})
+
+
+def test_select_indices_is_seeded_sorted_and_distinct():
+    chosen = select_indices(150, 20, seed=3)
+    assert chosen == select_indices(150, 20, seed=3)
+    assert chosen == sorted(set(chosen)) and len(chosen) == 20
+    assert chosen != select_indices(150, 20, seed=4)
+    assert select_indices(5, None, seed=0) == select_indices(5, 9, seed=0) == [0, 1, 2, 3, 4]
+    with pytest.raises(ValueError, match="pairs must be >= 1"):
+        select_indices(5, 0, seed=0)
+
+
+def test_expand_folder_argument(tmp_path):
+    argv = ["benchmark=human", f"benchmark={tmp_path}", "pairs=3"]
+    assert expand_folder_argument(argv) == [
+        "benchmark=human",
+        "benchmark=folder",
+        f"benchmark.root={tmp_path.resolve()}",
+        "pairs=3",
+    ]
+
+
+def test_object_diameter_is_rotation_invariant():
+    points = np.random.default_rng(0).normal(size=(200, 3))
+    rotation = random_transform_paper(1, 0, dtype=torch.float64)[0, :3, :3].numpy()
+    assert object_diameter(points @ rotation.T) == pytest.approx(object_diameter(points))
+
+
+def _write_pair_folder(folder: Path) -> None:
+    for seed in (5, 6):
+        pair = _tiny_pair(seed)
+        write_point_cloud(folder / f"p{seed}_src.ply", pair.src_xyz)
+        write_point_cloud(folder / f"p{seed}_tgt.ply", pair.tgt_xyz)
+        write_transform(folder / f"p{seed}_gt.txt", pair.gt_transform)
+
+
+def _check_folder_results(out: Path, folder: Path) -> None:
+    content = json.loads((out / "results.json").read_text())
+    assert content["settings"]["benchmark"] == {
+        "name": "folder",
+        "root": str(folder.resolve()),
+        "num_points": None,
+        "half_extent": None,
+    }
+    assert content["summary"]["icp_point"]["pairs"] == 2
+    assert content["summary"]["icp_point"]["err_r_deg_mean"] < 1.0
+    assert (out / "table.md").is_file() and (out / "alpha_recall.png").is_file()
+
+
+def test_config_runs_a_folder_of_pairs(tmp_path):
+    from hydra import compose, initialize_config_dir
+    from omegaconf import OmegaConf
+
+    folder, out = tmp_path / "pairs", tmp_path / "out"
+    _write_pair_folder(folder)
+    overrides = ["benchmark=folder", f"benchmark.root={folder.resolve()}", "methods=[icp_point]"]
+    with initialize_config_dir(config_dir=str(REPO_ROOT / "configs"), version_base="1.3"):
+        config = compose(config_name="benchmark", overrides=[*overrides, f"out={out}", "progress=false"])
+
+    assert set(config.method_zoo) >= {"icp_point", "icp_plane", "fgr", "fricp"}
+    benchmark(OmegaConf.to_container(config, resolve=True))
+
+    _check_folder_results(out, folder)
+
+
+def test_every_method_of_the_default_zoo_builds():
+    from hydra import compose, initialize_config_dir
+
+    with initialize_config_dir(config_dir=str(REPO_ROOT / "configs"), version_base="1.3"):
+        config = compose(config_name="benchmark", overrides=["benchmark=dragon"])
+
+    zoo = config.method_zoo
+    assert set(build_methods(list(zoo), zoo)) == set(zoo)
+    assert config.benchmark.name == "dragon" and config.pairs is None
+
+
+@pytest.mark.slow
+def test_command_line_runs_a_folder_of_pairs(tmp_path):
+    folder, out = tmp_path / "pairs", tmp_path / "out"
+    _write_pair_folder(folder)
+    env = {**os.environ, "PYTHONPATH": str(REPO_ROOT)}
+    command = [sys.executable, "-m", "train.benchmark", f"benchmark={folder}", "methods=[icp_point]"]
+    command += [f"out={out}", "progress=false"]
+
+    subprocess.run(command, cwd=REPO_ROOT, env=env, check=True, capture_output=True, timeout=300)
+
+    _check_folder_results(out, folder)
+
+
+def _median_nn(points: np.ndarray, transform: np.ndarray, target: np.ndarray) -> float:
+    moved = points @ transform[:3, :3].T + transform[:3, 3]
+    return float(np.median(cKDTree(target).query(moved)[0]))
+
+
+def _assert_ground_truth_aligns(pairs: list[PairSample], absolute: float | None) -> None:
+    for pair in pairs:
+        truth = pair.gt_transform.astype(np.float64)
+        aligned = _median_nn(pair.src_xyz, truth, pair.tgt_xyz)
+        unaligned = min(
+            _median_nn(pair.src_xyz, np.eye(4), pair.tgt_xyz),
+            _median_nn(pair.src_xyz, np.linalg.inv(truth), pair.tgt_xyz),
+        )
+        assert aligned < 0.75 * unaligned, pair.meta
+        if absolute is not None:
+            assert aligned < absolute, pair.meta
+
+
+@pytest.mark.shared_data
+@pytest.mark.parametrize("source", [human_pairs, airplane_pairs])
+def test_protocol_pairs_are_aligned_by_their_ground_truth(source, shared_data):
+    pairs = source(pairs=2, seed=0)
+
+    assert len(pairs) == 2
+    np.testing.assert_array_equal(pairs[1].gt_transform, source(pairs=2, seed=0)[1].gt_transform)
+    for pair in pairs:
+        assert pair.src_xyz.shape == pair.tgt_xyz.shape == (1024, 3)
+        assert np.abs(pair.tgt_xyz).max() <= 1.0 + 0.2 * np.sqrt(3) + 1e-5
+    _assert_ground_truth_aligns(pairs, absolute=0.05)
+
+
+@pytest.mark.shared_data
+def test_dragon_pairs_share_the_source_under_different_poses(shared_data):
+    pairs = dragon_pairs(pairs=3, seed=0)
+
+    assert len(pairs) == 3
+    np.testing.assert_array_equal(pairs[0].src_xyz, pairs[2].src_xyz)
+    assert not np.allclose(pairs[0].gt_transform, pairs[1].gt_transform)
+    _assert_ground_truth_aligns(pairs, absolute=0.05)
+
+
+@pytest.mark.shared_data
+def test_threedmatch_pairs_are_aligned_by_their_ground_truth(shared_data):
+    pairs = threedmatch_pairs(seed=0)
+
+    assert [pair.meta["dataset"] for pair in pairs] == ["threedmatch", "geotransformer_demo"]
+    assert pairs[0].meta["source"] == "cloud_bin_4" and pairs[0].meta["target"] == "cloud_bin_0"
+    _assert_ground_truth_aligns(pairs, absolute=None)

@@ -25,6 +25,9 @@ import math
 import numba
 import numpy as np
 
+# torch already runs on OpenMP; the TBB that Open3D ships is too old for numba and only warns.
+numba.config.THREADING_LAYER_PRIORITY = ["omp", "workqueue", "tbb"]
+
 MODE_CANDIDATES = 0  # Insec1: every candidate point is an intersection
 MODE_CONVEX = 1  # paper Eq. (7): candidates whose k nearest neighbours are candidates too
 MODE_TRIPLET = 2  # authors' code: the point and its k neighbours all within the anchor's radius

@@ -1,0 +1,101 @@
+"""Registration pairs: sources, the paper's pair protocol, caching and collation.
+
+Every dataset yields :class:`linereg.structures.PairSample` (numpy): float32 source/target
+clouds, normals (computed when the data has none), ``gt_transform`` mapping source to target
+(``tgt ≈ R @ src + t``) or ``None`` for unlabeled data, and metadata. Pairs are deterministic
+given ``(seed, index)``. :func:`datasets.collate.collate_pairs` batches them into a
+:class:`~linereg.structures.PairBatch`.
+
+Registered datasets (``DATASETS.names()``): ``procedural`` (default, no files), ``mesh_folder``,
+``modelnet40``, ``threedmatch``, ``rgbd_sequence``, ``pairs_folder``, ``concat`` (several
+datasets, optionally split), ``cached`` (a cache folder written by
+``scripts/prepare_dataset.py``).
+
+Configs are mappings ``{name: <registered>, **kwargs}``; two extra keys apply to every dataset:
+``cache_dir`` (generate every pair once into a compressed on-disk cache there and serve it
+from memory) and ``cache_workers`` (processes used to fill it; default all cores).
+"""
+
+from __future__ import annotations
+
+import inspect
+from collections.abc import Mapping
+from typing import Any
+
+from omegaconf import DictConfig, OmegaConf
+from torch.utils.data import Dataset
+
+from datasets import (  # noqa: F401  (importing registers the builders)
+    cache,
+    combine,
+    pairs_folder,
+    procedural,
+    rgbd,
+    shape_sources,
+    threedmatch,
+)
+from datasets.base import DATASETS, PairDataset, item_rng
+from datasets.cache import CachedPairs, materialize
+from datasets.collate import collate_pairs
+
+__all__ = [
+    "DATASETS",
+    "CachedPairs",
+    "PairDataset",
+    "build_dataset",
+    "collate_pairs",
+    "item_rng",
+    "materialize",
+]
+
+_CACHE_KEYS = ("cache_dir", "cache_workers")
+
+
+def _plain_mapping(config: Any) -> dict[str, Any]:
+    """A plain dict from a mapping or an OmegaConf config (interpolations resolved)."""
+    if isinstance(config, DictConfig):
+        return OmegaConf.to_container(config, resolve=True)
+    if not isinstance(config, Mapping):
+        raise TypeError(f"dataset config must be a mapping {{name: ..., **kwargs}}, got {type(config).__name__}")
+    return dict(config)
+
+
+def build_dataset(config: Mapping[str, Any]) -> Dataset:
+    """Build a dataset from ``{name: <registered>, **kwargs}`` (a dict or a Hydra config).
+
+    Args:
+        config: ``name`` selects the builder in :data:`DATASETS`; other keys are its keyword
+            arguments, plus the optional ``cache_dir`` / ``cache_workers``.
+
+    Returns:
+        The dataset, or its :class:`CachedPairs` when ``cache_dir`` is given.
+
+    Raises:
+        TypeError: ``config`` is not a mapping.
+        KeyError: unknown dataset name (the message lists registered names).
+        ValueError: missing ``name`` or keys the builder does not accept (listed).
+    """
+    config = _plain_mapping(config)
+    if "name" not in config:
+        raise ValueError(f"dataset config needs a 'name'; registered: {DATASETS.names()}")
+    name = config.pop("name")
+    builder = DATASETS.get(name)
+    cache_options = {key: config.pop(key) for key in _CACHE_KEYS if key in config}
+    parameters = [
+        p for p in inspect.signature(builder).parameters.values() if p.kind in (p.KEYWORD_ONLY, p.POSITIONAL_OR_KEYWORD)
+    ]
+    accepted = [p.name for p in parameters]
+    missing = [p.name for p in parameters if p.default is p.empty and p.name not in config]
+    if missing:
+        raise ValueError(f"dataset {name!r} needs key(s) {missing}")
+    unknown = sorted(set(config) - set(accepted))
+    if unknown:
+        raise ValueError(
+            f"unknown key(s) {unknown} for dataset {name!r}; accepted: {sorted([*accepted, *_CACHE_KEYS])}"
+        )
+    dataset = builder(**config)
+    if cache_options.get("cache_dir") is not None:
+        if not isinstance(dataset, PairDataset):
+            raise ValueError(f"dataset {name!r} is already a cache; drop 'cache_dir'")
+        return materialize(dataset, cache_options["cache_dir"], workers=cache_options.get("cache_workers"))
+    return dataset

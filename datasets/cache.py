@@ -1,0 +1,249 @@
+"""On-disk cache of generated pairs: compressed shards plus a manifest of the generator settings.
+
+Layout of one cache (``<cache_root>/<dataset name>-<settings hash>/``)::
+
+    manifest.json            format version, generator settings, pair count, shards, timing
+    shard_0000000_0000256.npz  pairs [0, 256): concatenated clouds + offsets, transforms, meta
+
+The folder name hashes :meth:`PairDataset.settings`, so changing any generator setting
+writes a new cache instead of silently reusing a stale one. Shards are written atomically
+as they finish; an interrupted run resumes by generating only the missing shards. Loading
+reads every shard once into memory (a 10 000-pair, 1024-point cache with normals is ~0.5 GB)
+and then serves pairs by slicing, shared copy-on-write with forked DataLoader workers.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+import multiprocessing
+import os
+import time
+from datetime import datetime, timezone
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from torch.utils.data import Dataset
+from tqdm import tqdm
+
+from datasets.base import DATASETS, PairDataset
+from linereg.structures import PairSample
+
+FORMAT_VERSION = 1
+MANIFEST = "manifest.json"
+_CLOUD_FIELDS = ("src_xyz", "tgt_xyz", "src_normals", "tgt_normals")
+
+
+def _canonical(settings: dict[str, Any]) -> dict[str, Any]:
+    """Settings as they read back from JSON (tuples become lists, ...)."""
+    return json.loads(json.dumps(settings, sort_keys=True, default=str))
+
+
+def settings_key(settings: dict[str, Any]) -> str:
+    """Short stable hash of a settings dictionary."""
+    text = json.dumps(_canonical(settings), sort_keys=True)
+    return hashlib.sha256(text.encode()).hexdigest()[:16]
+
+
+def cache_path(dataset: PairDataset, cache_root: str | Path) -> Path:
+    """The cache folder of ``dataset`` under ``cache_root``."""
+    return Path(cache_root) / f"{dataset.registry_name}-{settings_key(dataset.settings())}"
+
+
+def write_shard(samples: list[PairSample], path: Path) -> None:
+    """Write pairs to one compressed ``.npz`` shard (atomically, via a temporary file)."""
+    arrays: dict[str, np.ndarray] = {}
+    for name in _CLOUD_FIELDS:
+        xyz_name = name.replace("normals", "xyz")
+        clouds = [getattr(s, name) for s in samples]
+        present = np.array([c is not None for c in clouds])
+        sizes = [len(getattr(s, xyz_name)) for s in samples]
+        filled = [c if c is not None else np.zeros((n, 3), np.float32) for c, n in zip(clouds, sizes, strict=True)]
+        arrays[name] = np.concatenate(filled).astype(np.float32) if filled else np.zeros((0, 3), np.float32)
+        arrays[f"has_{name}"] = present
+        arrays[f"{name}_offsets"] = np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64)
+    arrays["has_gt"] = np.array([s.gt_transform is not None for s in samples])
+    arrays["gt_transform"] = np.stack(
+        [s.gt_transform if s.gt_transform is not None else np.eye(4) for s in samples]
+    ).astype(np.float32)
+    arrays["meta"] = np.array([json.dumps(s.meta, default=str) for s in samples])
+    tmp = path.with_name(path.name + ".tmp.npz")
+    np.savez_compressed(tmp, **arrays)
+    os.replace(tmp, path)
+
+
+class CachedPairs(Dataset):
+    """Pairs read back from a cache folder (all shards loaded into memory at construction).
+
+    Args:
+        path: the cache folder (holding ``manifest.json``).
+    """
+
+    registry_name = "cached"
+
+    def __init__(self, path: str | Path) -> None:
+        self.path = Path(path)
+        manifest_file = self.path / MANIFEST
+        if not manifest_file.is_file():
+            raise FileNotFoundError(
+                f"no pair cache at {self.path} (missing {MANIFEST}); generate it with "
+                "scripts/prepare_dataset.py or build_dataset({..., 'cache_dir': ...})"
+            )
+        self.manifest = json.loads(manifest_file.read_text())
+        if self.manifest.get("version") != FORMAT_VERSION:
+            raise ValueError(
+                f"{manifest_file}: cache format version {self.manifest.get('version')} is not "
+                f"{FORMAT_VERSION}; delete the folder and regenerate it"
+            )
+        shards = [np.load(self.path / s["file"]) for s in self.manifest["shards"]]
+        self._arrays: dict[str, np.ndarray] = {}
+        for name in _CLOUD_FIELDS:
+            self._arrays[name] = np.concatenate([s[name] for s in shards])
+            self._arrays[f"has_{name}"] = np.concatenate([s[f"has_{name}"] for s in shards])
+            starts = np.cumsum([0] + [s[f"{name}_offsets"][-1] for s in shards[:-1]])
+            self._arrays[f"{name}_offsets"] = np.concatenate(
+                [s[f"{name}_offsets"][:-1] + start for s, start in zip(shards, starts, strict=True)]
+                + [[sum(int(s[f"{name}_offsets"][-1]) for s in shards)]]
+            )
+        for name in ("has_gt", "gt_transform", "meta"):
+            self._arrays[name] = np.concatenate([s[name] for s in shards])
+        if len(self._arrays["meta"]) != self.manifest["num_pairs"]:
+            raise ValueError(
+                f"{self.path}: shards hold {len(self._arrays['meta'])} pairs but the manifest "
+                f"records {self.manifest['num_pairs']}; delete the folder and regenerate it"
+            )
+
+    def __len__(self) -> int:
+        return int(self.manifest["num_pairs"])
+
+    def settings(self) -> dict[str, Any]:
+        """The generator settings recorded in the manifest."""
+        return self.manifest["settings"]
+
+    def _cloud(self, name: str, index: int) -> np.ndarray | None:
+        """Copy of cloud ``name`` of pair ``index`` (``None`` when absent)."""
+        if not self._arrays[f"has_{name}"][index]:
+            return None
+        offsets = self._arrays[f"{name}_offsets"]
+        return self._arrays[name][offsets[index] : offsets[index + 1]].copy()
+
+    def __getitem__(self, index: int) -> PairSample:
+        length = len(self)
+        if not -length <= index < length:
+            raise IndexError(f"index {index} out of range for a cache of {length} pairs")
+        index %= length
+        gt = self._arrays["gt_transform"][index].copy() if self._arrays["has_gt"][index] else None
+        return PairSample(
+            src_xyz=self._cloud("src_xyz", index),
+            tgt_xyz=self._cloud("tgt_xyz", index),
+            src_normals=self._cloud("src_normals", index),
+            tgt_normals=self._cloud("tgt_normals", index),
+            gt_transform=gt,
+            meta=json.loads(str(self._arrays["meta"][index])),
+        )
+
+
+_worker_dataset: PairDataset | None = None
+
+
+def _init_worker(dataset: PairDataset) -> None:
+    """Pool initializer: keep the dataset and use one torch thread per process."""
+    global _worker_dataset
+    _worker_dataset = dataset
+    torch.set_num_threads(1)
+
+
+def _generate_shard(task: tuple[int, int, str]) -> int:
+    """Generate pairs ``[start, stop)`` of the worker's dataset into ``file``."""
+    return _write_pairs(_worker_dataset, task)
+
+
+def _write_pairs(dataset: PairDataset, task: tuple[int, int, str]) -> int:
+    """Generate pairs ``[start, stop)`` of ``dataset`` into ``file``; returns their number."""
+    start, stop, file = task
+    write_shard([dataset.make_pair(i) for i in range(start, stop)], Path(file))
+    return stop - start
+
+
+def materialize(
+    dataset: PairDataset,
+    cache_root: str | Path,
+    *,
+    workers: int | None = None,
+    shard_size: int = 128,
+    progress: bool = True,
+) -> CachedPairs:
+    """Generate every pair of ``dataset`` once into a cache under ``cache_root`` and load it.
+
+    An existing complete cache with the same settings is loaded without generating anything.
+
+    Args:
+        dataset: the generator.
+        cache_root: folder holding caches (created when missing).
+        workers: worker processes (``None``: every CPU core; ``0``: this process).
+        shard_size: most pairs per shard file; smaller datasets are cut into up to 16 shards
+            (of at least 8 pairs) so that the work spreads over the workers.
+        progress: show a tqdm progress bar.
+
+    Returns:
+        The loaded cache.
+    """
+    path = cache_path(dataset, cache_root)
+    settings = _canonical(dataset.settings())
+    manifest_file = path / MANIFEST
+    if manifest_file.is_file():
+        manifest = json.loads(manifest_file.read_text())
+        if manifest.get("settings") == settings and manifest.get("num_pairs") == len(dataset):
+            return CachedPairs(path)
+    path.mkdir(parents=True, exist_ok=True)
+    shard_size = min(shard_size, max(8, math.ceil(len(dataset) / 16)))
+    shards = [
+        {
+            "file": f"shard_{start:07d}_{min(start + shard_size, len(dataset)):07d}.npz",
+            "start": start,
+            "stop": min(start + shard_size, len(dataset)),
+        }
+        for start in range(0, len(dataset), shard_size)
+    ]
+    todo = [(s["start"], s["stop"], str(path / s["file"])) for s in shards if not (path / s["file"]).is_file()]
+    workers = min((os.cpu_count() or 1) if workers is None else workers, len(todo))
+    began = time.perf_counter()
+    with tqdm(
+        total=len(dataset),
+        initial=len(dataset) - sum(t[1] - t[0] for t in todo),
+        unit="pair",
+        desc=f"generating {path.name}",
+        disable=not progress,
+    ) as bar:
+        if workers <= 1:
+            for task in todo:
+                bar.update(_write_pairs(dataset, task))
+        else:
+            context = multiprocessing.get_context("spawn")
+            with context.Pool(workers, initializer=_init_worker, initargs=(dataset,)) as pool:
+                for count in pool.imap_unordered(_generate_shard, todo):
+                    bar.update(count)
+    manifest = {
+        "version": FORMAT_VERSION,
+        "dataset": dataset.registry_name,
+        "settings": settings,
+        "num_pairs": len(dataset),
+        "shards": shards,
+        "generated_pairs": sum(t[1] - t[0] for t in todo),
+        "workers": workers,
+        "elapsed_s": round(time.perf_counter() - began, 3),
+        "created": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+    }
+    tmp = manifest_file.with_name(MANIFEST + ".tmp")
+    tmp.write_text(json.dumps(manifest, indent=2))
+    os.replace(tmp, manifest_file)
+    return CachedPairs(path)
+
+
+@DATASETS.register("cached")
+def build_cached(*, path: str) -> CachedPairs:
+    """Pairs from a cache folder written by :func:`materialize` / ``scripts/prepare_dataset.py``."""
+    return CachedPairs(path)

@@ -1,0 +1,98 @@
+"""Several datasets as one, optionally split into train/test (the paper's mixed Real dataset).
+
+``{name: concat, datasets: [{name: threedmatch, ...}, {name: rgbd_sequence, ...}],
+split: train, train_fraction: 0.8}`` concatenates the parts and keeps a seeded random
+``train_fraction`` share of the pairs (``split: test`` keeps the rest, ``all`` everything).
+"""
+
+from __future__ import annotations
+
+import bisect
+from collections.abc import Mapping, Sequence
+from itertools import accumulate
+from typing import Any
+
+import numpy as np
+
+from datasets.base import DATASETS, PairDataset
+from linereg.structures import PairSample
+
+SPLITS = ("train", "test", "all")
+
+
+class ConcatPairs(PairDataset):
+    """The pairs of ``parts`` one after the other, restricted to a seeded random split.
+
+    Args:
+        parts: the datasets.
+        split: ``"train"``, ``"test"`` or ``"all"``.
+        train_fraction: share of the concatenated pairs that is train.
+        split_seed: seed of the permutation that assigns pairs to splits.
+    """
+
+    registry_name = "concat"
+
+    def __init__(
+        self,
+        parts: Sequence[PairDataset],
+        *,
+        split: str = "all",
+        train_fraction: float = 0.8,
+        split_seed: int = 0,
+    ) -> None:
+        if not parts:
+            raise ValueError("concat needs at least one dataset")
+        if split not in SPLITS:
+            raise ValueError(f"split must be one of {SPLITS}, got {split!r}")
+        if not 0 < train_fraction < 1:
+            raise ValueError(f"train_fraction must be in (0, 1), got {train_fraction}")
+        self.parts = list(parts)
+        self.ends = list(accumulate(len(part) for part in self.parts))
+        total = self.ends[-1]
+        order = np.random.default_rng(split_seed).permutation(total)
+        num_train = round(train_fraction * total)
+        chosen = {"train": order[:num_train], "test": order[num_train:], "all": np.arange(total)}
+        self.indices = np.sort(chosen[split])
+        if len(self.indices) == 0:
+            raise ValueError(f"split {split!r} of {total} pairs is empty")
+        self.split = split
+        self.train_fraction = train_fraction
+        self.split_seed = split_seed
+
+    def __len__(self) -> int:
+        return len(self.indices)
+
+    def make_pair(self, index: int) -> PairSample:
+        flat = int(self.indices[index])
+        part = bisect.bisect_right(self.ends, flat)
+        start = self.ends[part - 1] if part else 0
+        pair = self.parts[part][flat - start]
+        pair.meta = {**pair.meta, "concat_index": index, "part": part}
+        return pair
+
+    def settings(self) -> dict[str, Any]:
+        return {
+            "dataset": self.registry_name,
+            "parts": [part.settings() for part in self.parts],
+            "split": self.split,
+            "train_fraction": self.train_fraction,
+            "split_seed": self.split_seed,
+        }
+
+
+@DATASETS.register("concat")
+def build_concat(
+    *,
+    datasets: Sequence[Mapping[str, Any]],
+    split: str = "all",
+    train_fraction: float = 0.8,
+    split_seed: int = 0,
+) -> ConcatPairs:
+    """Concatenate dataset configs (each ``{name: ..., **kwargs}``) and take a split."""
+    from datasets import build_dataset
+
+    parts = [build_dataset(config) for config in datasets]
+    uncached = [p for p in parts if not isinstance(p, PairDataset)]
+    if uncached:
+        raise ValueError("concat parts must be generators, not caches; cache the concat instead")
+    return ConcatPairs(parts, split=split, train_fraction=train_fraction, split_seed=split_seed)

@@ -1,0 +1,99 @@
+"""Pairs generated from a collection of complete shapes by a protocol (paper or RPM-Net crop)."""
+
+from __future__ import annotations
+
+from collections import OrderedDict
+from typing import Any, Protocol
+
+from datasets.base import PairDataset, item_rng
+from datasets.protocol import CropProtocol, Shape, ShapeViews, ViewProtocol, protocol_settings
+from linereg.structures import PairSample
+
+_PAIR_STREAM = 11
+
+
+class ShapeCollection(Protocol):
+    """What a shape source provides: an indexable list of :class:`Shape`."""
+
+    split: str
+
+    def __len__(self) -> int: ...
+
+    def load(self, index: int) -> Shape: ...
+
+    def describe(self) -> dict[str, Any]: ...
+
+
+class ShapePairDataset(PairDataset):
+    """Pairs ``index = shape_index * pairs_per_shape + view`` of a shape collection.
+
+    Consecutive indices share a shape, whose renderer (ray-casting scene, whole-surface
+    samples) stays in a small per-process LRU cache.
+
+    Args:
+        shapes: the shape source.
+        protocol: pair protocol (see :mod:`datasets.protocol`).
+        seed: base seed; pair ``index`` uses the generator ``(seed, split, index)``.
+        name: registry name recorded in metadata and cache folder names.
+        shape_cache_size: renderers kept per process.
+    """
+
+    def __init__(
+        self,
+        shapes: ShapeCollection,
+        protocol: ViewProtocol | CropProtocol,
+        *,
+        seed: int = 0,
+        name: str = "shapes",
+        shape_cache_size: int = 4,
+    ) -> None:
+        if len(shapes) == 0:
+            raise ValueError(f"{name}: the shape source is empty ({shapes.describe()})")
+        self.shapes = shapes
+        self.protocol = protocol
+        self.seed = seed
+        self.registry_name = name
+        self.shape_cache_size = shape_cache_size
+        self._renderers: OrderedDict[int, ShapeViews] = OrderedDict()
+
+    def __len__(self) -> int:
+        return len(self.shapes) * self.protocol.pairs_per_shape
+
+    def __getstate__(self) -> dict[str, Any]:
+        state = dict(self.__dict__)
+        state["_renderers"] = OrderedDict()
+        return state
+
+    def _renderer(self, shape_index: int) -> ShapeViews:
+        """The (cached) renderer of shape ``shape_index``."""
+        if shape_index in self._renderers:
+            self._renderers.move_to_end(shape_index)
+            return self._renderers[shape_index]
+        renderer = ShapeViews(self.shapes.load(shape_index))
+        self._renderers[shape_index] = renderer
+        while len(self._renderers) > self.shape_cache_size:
+            self._renderers.popitem(last=False)
+        return renderer
+
+    def make_pair(self, index: int) -> PairSample:
+        shape_index, view = divmod(index, self.protocol.pairs_per_shape)
+        renderer = self._renderer(shape_index)
+        split_stream = {"train": 0, "val": 1, "test": 2}.get(self.shapes.split, 3)
+        rng = item_rng(self.seed, _PAIR_STREAM, split_stream, index)
+        pair = self.protocol.make_pair(renderer, view, rng)
+        pair.meta = {
+            "dataset": self.registry_name,
+            "index": index,
+            "shape": renderer.shape.name,
+            **renderer.shape.meta,
+            **pair.meta,
+        }
+        return pair
+
+    def settings(self) -> dict[str, Any]:
+        return {
+            "dataset": self.registry_name,
+            "shapes": self.shapes.describe(),
+            "protocol": protocol_settings(self.protocol),
+            "seed": self.seed,
+        }

@@ -1,0 +1,182 @@
+"""3DMatch / 3DLoMatch fragment pairs with the benchmark's ``gt.log``.
+
+Layout (the geometric-registration benchmark): a scene folder of fragments
+``cloud_bin_<i>.ply`` and a ``gt.log`` whose blocks ``i j n`` + 4x4 ``T`` satisfy
+``p_in_fragment_i = T @ p_in_fragment_j``. Each block becomes one pair with **source =
+fragment j, target = fragment i, gt_transform = T** (source to target). ``gt.log`` is looked
+up in the scene folder, then in a sibling ``<scene>-evaluation/`` folder (the official
+download), unless ``gt_log`` names it. ``gt_overlap.log`` (``i,j,ratio``) next to it enables
+the overlap filter (the paper keeps pairs with overlap > 0.7; 3DLoMatch is 0.1-0.3).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from datasets.base import DATASETS, PairDataset, item_rng
+from datasets.formats import read_log, read_overlap_log
+from datasets.protocol import ScanSettings, finish_scan_pair
+from linereg.io import read_point_cloud
+from linereg.structures import PairSample
+
+_STREAM = 21
+
+
+def _find_gt_log(scene: Path) -> Path:
+    """``gt.log`` of a scene folder (in it, or in ``<scene>-evaluation/``)."""
+    for candidate in (scene / "gt.log", scene.parent / f"{scene.name}-evaluation" / "gt.log"):
+        if candidate.is_file():
+            return candidate
+    raise FileNotFoundError(
+        f"no gt.log for the 3DMatch scene {scene} (looked in the folder and in "
+        f"{scene.name}-evaluation/); pass gt_log=<path>"
+    )
+
+
+class ThreeDMatchPairs(PairDataset):
+    """Fragment pairs of one 3DMatch scene.
+
+    Args:
+        root: scene folder with ``cloud_bin_<i>.ply`` fragments.
+        gt_log: the scene's ``gt.log`` (default: found next to the fragments).
+        overlap_log: ``gt_overlap.log`` (default: next to ``gt_log`` when present).
+        min_overlap: keep pairs with overlap ratio ``>= min_overlap`` (needs overlaps).
+        max_overlap: keep pairs with overlap ratio ``<= max_overlap`` (3DLoMatch: 0.3).
+        skip_missing: drop pairs whose fragment files are absent instead of failing.
+        num_points: points per cloud after FPS (``None`` keeps all).
+        dense_points: random cap before normal estimation.
+        half_extent: scale pairs into ``[-half_extent, half_extent]^3`` (``None``: metres).
+        seed: base seed.
+    """
+
+    registry_name = "threedmatch"
+
+    def __init__(
+        self,
+        root: str | Path,
+        *,
+        gt_log: str | Path | None = None,
+        overlap_log: str | Path | None = None,
+        min_overlap: float | None = None,
+        max_overlap: float | None = None,
+        skip_missing: bool = False,
+        num_points: int | None = 2048,
+        dense_points: int | None = 20000,
+        half_extent: float | None = 5.0,
+        seed: int = 0,
+    ) -> None:
+        self.root = Path(root).expanduser()
+        if not self.root.is_dir():
+            raise FileNotFoundError(f"3DMatch scene folder not found: {self.root}")
+        self.root = self.root.resolve()
+        self.gt_log = Path(gt_log).resolve() if gt_log is not None else _find_gt_log(self.root)
+        entries = read_log(self.gt_log)
+        if overlap_log is None and (self.gt_log.parent / "gt_overlap.log").is_file():
+            overlap_log = self.gt_log.parent / "gt_overlap.log"
+        overlaps = read_overlap_log(overlap_log) if overlap_log is not None else None
+        if (min_overlap is not None or max_overlap is not None) and overlaps is None:
+            raise ValueError(
+                f"min_overlap/max_overlap need overlap ratios, but there is no gt_overlap.log "
+                f"next to {self.gt_log}; pass overlap_log=<path>"
+            )
+        if overlaps is not None:
+            low = -np.inf if min_overlap is None else min_overlap
+            high = np.inf if max_overlap is None else max_overlap
+            entries = [e for e in entries if low <= overlaps.get((e.i, e.j), -1.0) <= high]
+        missing = [e for e in entries if not (self._fragment(e.i).is_file() and self._fragment(e.j).is_file())]
+        if missing and not skip_missing:
+            example = missing[0]
+            raise FileNotFoundError(
+                f"{len(missing)} of {len(entries)} pairs of {self.gt_log} reference fragments "
+                f"missing from {self.root} (e.g. cloud_bin_{example.i}.ply / "
+                f"cloud_bin_{example.j}.ply); pass skip_missing=True to use the "
+                f"{len(entries) - len(missing)} complete pairs"
+            )
+        missing_ids = {id(e) for e in missing}
+        self.entries = [e for e in entries if id(e) not in missing_ids]
+        if not self.entries:
+            raise ValueError(
+                f"no 3DMatch pairs left in {self.root} (gt.log {self.gt_log}, "
+                f"min_overlap={min_overlap}, max_overlap={max_overlap})"
+            )
+        self.overlaps = overlaps or {}
+        self.scan = ScanSettings(num_points=num_points, dense_points=dense_points, half_extent=half_extent)
+        self.seed = seed
+        self.filters = {"min_overlap": min_overlap, "max_overlap": max_overlap}
+
+    def _fragment(self, index: int) -> Path:
+        """Path of fragment ``index``."""
+        return self.root / f"cloud_bin_{index}.ply"
+
+    def __len__(self) -> int:
+        return len(self.entries)
+
+    def make_pair(self, index: int) -> PairSample:
+        entry = self.entries[index]
+        source = read_point_cloud(self._fragment(entry.j), min_points=4)
+        target = read_point_cloud(self._fragment(entry.i), min_points=4)
+        meta: dict[str, Any] = {
+            "dataset": self.registry_name,
+            "index": index,
+            "scene": self.root.name,
+            "source": f"cloud_bin_{entry.j}",
+            "target": f"cloud_bin_{entry.i}",
+            "file": str(self._fragment(entry.j)),
+        }
+        if (entry.i, entry.j) in self.overlaps:
+            meta["overlap"] = self.overlaps[(entry.i, entry.j)]
+        return finish_scan_pair(
+            source.xyz,
+            target.xyz,
+            entry.transform,
+            self.scan,
+            item_rng(self.seed, _STREAM, index),
+            src_normals=source.normals,
+            tgt_normals=target.normals,
+            src_viewpoint=np.zeros(3),
+            tgt_viewpoint=np.zeros(3),
+            meta=meta,
+        )
+
+    def settings(self) -> dict[str, Any]:
+        return {
+            "dataset": self.registry_name,
+            "root": str(self.root),
+            "gt_log": str(self.gt_log),
+            "pairs": [[e.i, e.j] for e in self.entries],
+            **self.filters,
+            "scan": vars(self.scan),
+            "seed": self.seed,
+        }
+
+
+@DATASETS.register("threedmatch")
+def build_threedmatch(
+    *,
+    root: str,
+    gt_log: str | None = None,
+    overlap_log: str | None = None,
+    min_overlap: float | None = None,
+    max_overlap: float | None = None,
+    skip_missing: bool = False,
+    num_points: int | None = 2048,
+    dense_points: int | None = 20000,
+    half_extent: float | None = 5.0,
+    seed: int = 0,
+) -> ThreeDMatchPairs:
+    """3DMatch fragment pairs (see :class:`ThreeDMatchPairs`)."""
+    return ThreeDMatchPairs(
+        root,
+        gt_log=gt_log,
+        overlap_log=overlap_log,
+        min_overlap=min_overlap,
+        max_overlap=max_overlap,
+        skip_missing=skip_missing,
+        num_points=num_points,
+        dense_points=dense_points,
+        half_extent=half_extent,
+        seed=seed,
+    )

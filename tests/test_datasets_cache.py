@@ -1,0 +1,118 @@
+"""The pair cache and build_dataset: generate once, reload identical pairs, resume, errors."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from omegaconf import OmegaConf
+
+from datasets import DATASETS, build_dataset
+from datasets.cache import MANIFEST, CachedPairs, cache_path, materialize
+
+CONFIG = {
+    "name": "procedural",
+    "num_shapes": 2,
+    "protocol": {"name": "airplane", "num_views": 8, "num_points": 256},
+    "seed": 3,
+}
+
+
+def _assert_same(a, b):
+    for name in ("src_xyz", "tgt_xyz", "src_normals", "tgt_normals", "gt_transform"):
+        np.testing.assert_array_equal(getattr(a, name), getattr(b, name))
+    assert a.meta == b.meta
+
+
+def test_cache_holds_exactly_the_generated_pairs(tmp_path):
+    generator = build_dataset(CONFIG)
+    cached = materialize(generator, tmp_path, workers=0, progress=False)
+    assert isinstance(cached, CachedPairs) and len(cached) == len(generator) == 16
+    for index in (0, 9, 15):
+        _assert_same(cached[index], generator[index])
+    manifest = json.loads((cached.path / MANIFEST).read_text())
+    assert manifest["settings"]["protocol"]["num_views"] == 8
+    assert manifest["settings"]["seed"] == 3
+    assert manifest["num_pairs"] == 16 and len(manifest["shards"]) == 2
+    assert all(s["file"].endswith(".npz") for s in manifest["shards"])
+
+
+def test_existing_cache_is_reused_and_partial_cache_resumed(tmp_path):
+    generator = build_dataset(CONFIG)
+    first = materialize(generator, tmp_path, workers=0, progress=False)
+    assert materialize(generator, tmp_path, workers=0, progress=False).manifest == first.manifest
+    (first.path / MANIFEST).unlink()
+    (first.path / first.manifest["shards"][1]["file"]).unlink()
+    resumed = materialize(generator, tmp_path, workers=0, progress=False)
+    assert resumed.manifest["generated_pairs"] == 8
+    _assert_same(resumed[12], generator[12])
+
+
+def test_changed_settings_get_their_own_cache(tmp_path):
+    base = build_dataset(CONFIG)
+    other = build_dataset({**CONFIG, "seed": 4})
+    assert cache_path(base, tmp_path) != cache_path(other, tmp_path)
+    assert cache_path(base, tmp_path) == cache_path(build_dataset(CONFIG), tmp_path)
+
+
+def test_build_dataset_with_cache_dir_uses_worker_processes(tmp_path):
+    cached = build_dataset(OmegaConf.create({**CONFIG, "cache_dir": str(tmp_path), "cache_workers": 2}))
+    assert isinstance(cached, CachedPairs)
+    assert cached.manifest["workers"] == 2
+    _assert_same(cached[5], build_dataset(CONFIG)[5])
+    reloaded = build_dataset({"name": "cached", "path": str(cached.path)})
+    _assert_same(reloaded[15], cached[15])
+
+
+def test_unlabeled_and_variable_size_pairs_round_trip(tmp_path):
+    from datasets.cache import write_shard
+    from linereg.structures import PairSample
+
+    samples = [
+        PairSample(np.ones((5, 3), np.float32), np.zeros((7, 3), np.float32), meta={"i": 0}),
+        PairSample(
+            np.ones((3, 3), np.float32),
+            np.zeros((2, 3), np.float32),
+            np.ones((3, 3), np.float32),
+            gt_transform=np.eye(4, dtype=np.float32),
+        ),
+    ]
+    write_shard(samples, tmp_path / "shard.npz")
+    (tmp_path / MANIFEST).write_text(
+        json.dumps({"version": 1, "settings": {}, "num_pairs": 2, "shards": [{"file": "shard.npz"}]})
+    )
+    cached = CachedPairs(tmp_path)
+    assert cached[0].gt_transform is None and cached[0].src_normals is None
+    assert cached[0].tgt_xyz.shape == (7, 3) and cached[0].meta == {"i": 0}
+    np.testing.assert_array_equal(cached[1].src_normals, np.ones((3, 3)))
+    assert cached[1].tgt_normals is None and cached[1].gt_transform.shape == (4, 4)
+    with pytest.raises(IndexError):
+        cached[2]
+
+
+def test_build_dataset_errors_name_the_problem(tmp_path):
+    with pytest.raises(KeyError, match=r"unknown dataset 'modelnet'.*modelnet40"):
+        build_dataset({"name": "modelnet"})
+    with pytest.raises(ValueError, match=r"unknown key\(s\) \['num_shape'\].*num_shapes"):
+        build_dataset({"name": "procedural", "num_shape": 3})
+    with pytest.raises(ValueError, match=r"needs key\(s\) \['root'\]"):
+        build_dataset({"name": "mesh_folder"})
+    with pytest.raises(ValueError, match="needs a 'name'"):
+        build_dataset({"root": "x"})
+    with pytest.raises(TypeError, match="must be a mapping"):
+        build_dataset("procedural")
+    with pytest.raises(FileNotFoundError, match="no pair cache"):
+        build_dataset({"name": "cached", "path": str(tmp_path)})
+
+
+def test_every_source_is_registered():
+    assert set(DATASETS.names()) >= {
+        "procedural",
+        "mesh_folder",
+        "modelnet40",
+        "threedmatch",
+        "rgbd_sequence",
+        "pairs_folder",
+        "cached",
+    }

@@ -1,0 +1,66 @@
+"""scripts/prepare_dataset.py and the concat dataset it uses for the Real mix."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from datasets import build_dataset
+from scripts import prepare_dataset
+
+SMALL = {"name": "procedural", "num_shapes": 1, "protocol": {"name": "airplane", "num_views": 5, "num_points": 64}}
+
+
+def test_concat_splits_partition_the_parts():
+    parts = [SMALL, {**SMALL, "seed": 1}]
+    train = build_dataset({"name": "concat", "datasets": parts, "split": "train", "train_fraction": 0.7})
+    test = build_dataset({"name": "concat", "datasets": parts, "split": "test", "train_fraction": 0.7})
+    everything = build_dataset({"name": "concat", "datasets": parts})
+    assert (len(train), len(test), len(everything)) == (7, 3, 10)
+    assert set(train.indices) | set(test.indices) == set(range(10))
+    assert not set(train.indices) & set(test.indices)
+    second_part = build_dataset({**SMALL, "seed": 1})
+    np.testing.assert_array_equal(everything[7].gt_transform, second_part[2].gt_transform)
+    assert everything[7].meta["part"] == 1
+    with pytest.raises(ValueError, match="split must be one of"):
+        build_dataset({"name": "concat", "datasets": parts, "split": "val"})
+
+
+def test_prepare_procedural_writes_a_loadable_cache(tmp_path, capsys):
+    argv = ["procedural", "--num-shapes", "1", "--out", str(tmp_path), "--workers", "0", "--splits", "test"]
+    assert prepare_dataset.main(argv) == 0
+    out = capsys.readouterr().out
+    assert "procedural test: 18 pairs in" in out and "load with: {name: cached, path:" in out
+    path = out.split("path: ")[1].split("}")[0]
+    cached = build_dataset({"name": "cached", "path": path})
+    assert len(cached) == 18 and cached[3].src_xyz.shape == (1024, 3)
+
+
+def test_paper_configs_match_the_paper_protocol(tmp_path):
+    (tmp_path / "airplane" / "train").mkdir(parents=True)
+    configs = prepare_dataset.airplane_configs(tmp_path, seed=0)
+    assert configs["train"]["name"] == "modelnet40" and configs["train"]["max_shapes"] == 625
+    assert configs["train"]["train_fraction"] * 625 == pytest.approx(500)
+    (tmp_path / "airplane" / "train" / "airplane_0001.off").touch()
+    meshes = prepare_dataset.airplane_configs(tmp_path, seed=0)["test"]
+    assert meshes["name"] == "mesh_folder" and meshes["protocol"]["view_axis"] == [0, 0, 1]
+    human = prepare_dataset.human_configs(tmp_path, seed=0)["train"]
+    assert human["protocol"] == "human" and human["train_fraction"] * 110 == pytest.approx(100)
+
+    for folder in ("3dmatch/scene_a", "3dmatch/scene_b", "rgbd/chess/seq-01", "rgbd/tum/fr1"):
+        (tmp_path / folder).mkdir(parents=True)
+    for scene in ("scene_a", "scene_b"):
+        (tmp_path / "3dmatch" / scene / "cloud_bin_0.ply").touch()
+    (tmp_path / "rgbd/chess/seq-01/frame-000000.depth.png").touch()
+    (tmp_path / "rgbd/tum/fr1/depth.txt").touch()
+    real = prepare_dataset.real_configs(tmp_path / "3dmatch", tmp_path / "rgbd", seed=0)["train"]
+    names = [(part["name"], part["root"].rsplit("/", 1)[-1]) for part in real["datasets"]]
+    assert names == [
+        ("threedmatch", "scene_a"),
+        ("threedmatch", "scene_b"),
+        ("rgbd_sequence", "seq-01"),
+        ("rgbd_sequence", "fr1"),
+    ]
+    assert real["datasets"][0]["min_overlap"] == 0.7 and real["datasets"][2]["frame_gap"] == 20
+    with pytest.raises(SystemExit, match="no 3DMatch scene"):
+        prepare_dataset.real_configs(tmp_path / "empty", None, seed=0)

@@ -87,7 +87,7 @@ def test_unknown_stage_preset_and_keys():
 
 
 def _compose(**overrides):
-    with initialize_config_dir(version_base="1.3", config_dir=str(REPO_ROOT / "configs")):
+    with initialize_config_dir(version_base="1.3", config_dir=str(REPO_ROOT / "configs" / "register")):
         cfg = compose("register", overrides=[f"{k}={v}" for k, v in overrides.items()])
     with open_dict(cfg):
         cfg.progress = False

@@ -1,6 +1,7 @@
 """Register one pair of point clouds: ``python -m train.register source=a.ply target=b.ply``.
 
-Hydra overrides select everything else (``configs/register.yaml``)::
+Hydra overrides select everything else (``configs/register/register.yaml``; the app has its own
+config root so that ``loss=...`` names a loss, not the training configs' ``loss`` group)::
 
     python -m train.register source=a.ply target=b.ply                      # linereg default
     python -m train.register source=a.ply target=b.ply gt=gt.txt            # + errors vs GT
@@ -104,7 +105,7 @@ def register_files(cfg: DictConfig, out_dir: Path) -> tuple[MethodResult, dict[s
     return result, report
 
 
-@hydra.main(version_base="1.3", config_path="../configs", config_name="register")
+@hydra.main(version_base="1.3", config_path="../configs/register", config_name="register")
 def main(cfg: DictConfig) -> None:
     out_dir = Path(hydra.core.hydra_config.HydraConfig.get().runtime.output_dir)
     result, report = register_files(cfg, out_dir)

@@ -1,0 +1,202 @@
+"""Building blocks shared by the registration models (one home for each).
+
+* :func:`make_norm` / :func:`shared_mlp`: normalisation layers and 1x1-convolution (or fully
+  connected) stacks. ``norm="group"`` is the paper's choice (BatchNorm replaced by GroupNorm so
+  that batches of 1-4 pairs train stably); ``"batch"`` reproduces the original DCP/FMR;
+  ``"none"`` drops normalisation.
+* :func:`check_pair_batch`: the input contract every model checks first.
+* :func:`soft_correspondence_transform`: the rigid head of DCP and RPM-Net (a soft assignment
+  turned into virtual target points, then :func:`linereg.procrustes.weighted_procrustes`),
+  reporting failing samples by batch index.
+"""
+
+from __future__ import annotations
+
+import warnings
+from collections.abc import Sequence
+from typing import Literal
+
+import torch
+from torch import nn
+
+from linereg.checks import check_points, check_same_batch
+from linereg.procrustes import weighted_procrustes
+from linereg.structures import PairBatch
+
+NormKind = Literal["group", "batch", "none"]
+LayerKind = Literal["linear", "conv1d", "conv2d"]
+NORM_KINDS: tuple[str, ...] = ("group", "batch", "none")
+
+# Added to the assignment mass of a row before dividing by it (RPM-Net's epsilon).
+ASSIGNMENT_EPS = 1e-5
+
+
+def check_norm_kind(norm: str) -> None:
+    """Raise ``ValueError`` unless ``norm`` is one of :data:`NORM_KINDS`."""
+    if norm not in NORM_KINDS:
+        raise ValueError(f"norm must be one of {NORM_KINDS}, got {norm!r}")
+
+
+def make_norm(norm: NormKind, channels: int, groups: int, *, layer: LayerKind) -> nn.Module:
+    """A normalisation layer for ``channels`` features.
+
+    Args:
+        norm: ``"group"`` (``nn.GroupNorm(groups, channels)``), ``"batch"`` (BatchNorm of the
+            dimensionality ``layer`` needs) or ``"none"`` (identity).
+        channels: number of feature channels.
+        groups: GroupNorm group count (ignored otherwise); must divide ``channels``.
+        layer: the layer the norm follows, ``"linear"`` and ``"conv1d"`` take ``(B, C[, N])``
+            inputs, ``"conv2d"`` takes ``(B, C, H, W)``.
+
+    Returns:
+        The module.
+    """
+    check_norm_kind(norm)
+    if norm == "none":
+        return nn.Identity()
+    if norm == "group":
+        if channels % groups:
+            raise ValueError(f"GroupNorm groups ({groups}) must divide the channels ({channels})")
+        return nn.GroupNorm(groups, channels)
+    return nn.BatchNorm2d(channels) if layer == "conv2d" else nn.BatchNorm1d(channels)
+
+
+def resolve_groups(defaults: Sequence[int], override: int | None) -> tuple[int, ...]:
+    """The per-layer GroupNorm group counts: the paper's ``defaults``, or ``override`` for all."""
+    if override is None:
+        return tuple(defaults)
+    if override < 1:
+        raise ValueError(f"groups must be a positive integer or None, got {override}")
+    return (override,) * len(defaults)
+
+
+def shared_mlp(
+    in_channels: int,
+    widths: Sequence[int],
+    *,
+    norm: NormKind,
+    groups: Sequence[int],
+    layer: LayerKind = "conv1d",
+    bias: bool = True,
+) -> nn.Sequential:
+    """A stack of (linear or 1x1 convolution, norm, ReLU) blocks.
+
+    Args:
+        in_channels: input channels.
+        widths: output channels of each block.
+        norm: normalisation kind (see :func:`make_norm`).
+        groups: GroupNorm group count of each block (same length as ``widths``).
+        layer: ``"linear"`` for ``(B, C)`` inputs, ``"conv1d"`` for ``(B, C, N)``, ``"conv2d"``
+            for ``(B, C, H, W)``.
+        bias: whether the linear/convolution layers have a bias.
+
+    Returns:
+        ``nn.Sequential`` mapping ``in_channels`` to ``widths[-1]`` channels.
+    """
+    if len(groups) != len(widths):
+        raise ValueError(f"groups needs one entry per layer ({len(widths)}), got {len(groups)}")
+    blocks: list[nn.Module] = []
+    for width, group in zip(widths, groups, strict=True):
+        if layer == "linear":
+            blocks.append(nn.Linear(in_channels, width, bias=bias))
+        elif layer == "conv1d":
+            blocks.append(nn.Conv1d(in_channels, width, 1, bias=bias))
+        else:
+            blocks.append(nn.Conv2d(in_channels, width, 1, bias=bias))
+        blocks += [make_norm(norm, width, group, layer=layer), nn.ReLU()]
+        in_channels = width
+    return nn.Sequential(*blocks)
+
+
+def check_pair_batch(
+    batch: PairBatch,
+    model_name: str,
+    *,
+    needs_normals: bool = False,
+    equal_counts: bool = False,
+) -> None:
+    """Check the parts of a :class:`PairBatch` a model reads.
+
+    Raises:
+        TypeError: ``batch`` is not a ``PairBatch``.
+        ValueError: bad point shapes, mismatched batch sizes, missing normals (when
+            ``needs_normals``), different source/target counts (when ``equal_counts``), or a
+            ragged batch (``*_lengths`` below the padded size), which the models do not support.
+    """
+    if not isinstance(batch, PairBatch):
+        raise TypeError(f"{model_name} expects a PairBatch, got {type(batch).__name__}")
+    check_points(batch.src_xyz, "batch.src_xyz", batched=True)
+    check_points(batch.tgt_xyz, "batch.tgt_xyz", batched=True)
+    check_same_batch(batch.src_xyz, batch.tgt_xyz, "batch.src_xyz", "batch.tgt_xyz")
+    for side in ("src", "tgt"):
+        points = getattr(batch, f"{side}_xyz")
+        lengths = getattr(batch, f"{side}_lengths")
+        if lengths is not None and bool((lengths < points.shape[1]).any()):
+            raise ValueError(
+                f"{model_name} needs full clouds, but batch.{side}_lengths has values below the "
+                f"padded size {points.shape[1]}: resample every cloud of the batch to the same "
+                "number of points"
+            )
+        if not needs_normals:
+            continue
+        normals = getattr(batch, f"{side}_normals")
+        if normals is None:
+            raise ValueError(
+                f"{model_name} needs normals, but batch.{side}_normals is None; datasets compute "
+                "them with Open3D (open3d.geometry.PointCloud.estimate_normals) when a source "
+                "has none: use a dataset that provides normals, or estimate them yourself"
+            )
+        if normals.shape != points.shape:
+            raise ValueError(
+                f"batch.{side}_normals must have the shape of batch.{side}_xyz "
+                f"{tuple(points.shape)}, got {tuple(normals.shape)}"
+            )
+    if equal_counts and batch.src_xyz.shape[1] != batch.tgt_xyz.shape[1]:
+        raise ValueError(
+            f"{model_name} needs equal source and target point counts, got "
+            f"{batch.src_xyz.shape[1]} and {batch.tgt_xyz.shape[1]}: resample both clouds to "
+            "the same number of points"
+        )
+
+
+def soft_correspondence_transform(
+    src: torch.Tensor,
+    tgt: torch.Tensor,
+    assignment: torch.Tensor,
+    *,
+    weighted: bool,
+    model_name: str,
+) -> torch.Tensor:
+    """Rigid transform from a soft assignment of source points to target points.
+
+    Every source point ``x_j`` gets a virtual target point and the transform is the Procrustes
+    solution mapping ``x_j`` to it. With ``weighted`` (RPM-Net, rows of partial mass), the
+    virtual point is ``sum_k A_jk y_k / (sum_k A_jk + eps)`` and ``x_j`` weighs
+    ``sum_k A_jk``; otherwise (DCP, rows summing to one) it is ``sum_k A_jk y_k`` with uniform
+    weights. Samples for which Procrustes is degenerate are named in a warning.
+
+    Args:
+        src: tensor of shape ``(B, J, 3)`` giving the source points.
+        tgt: tensor of shape ``(B, K, 3)`` giving the target points.
+        assignment: tensor of shape ``(B, J, K)`` giving non-negative matching weights.
+        weighted: weigh each source point by its assignment mass.
+        model_name: named in the warning.
+
+    Returns:
+        Tensor of shape ``(B, 4, 4)`` giving ``T_tgt_src``.
+    """
+    virtual_tgt = assignment @ tgt
+    if weighted:
+        mass = assignment.sum(-1)
+        result = weighted_procrustes(src, virtual_tgt / (mass[..., None] + ASSIGNMENT_EPS), mass)
+    else:
+        result = weighted_procrustes(src, virtual_tgt)
+    failed = (~result.valid).nonzero().flatten().tolist()
+    if failed:
+        warnings.warn(
+            f"{model_name}: the rigid fit is degenerate for batch index(es) {failed} "
+            "(coincident or collinear points, or no assignment mass); their estimate falls back "
+            "towards the identity rotation",
+            stacklevel=3,
+        )
+    return result.transform

@@ -361,6 +361,22 @@ def line_intersections(origins, dirs, points, radius, neighbors, mode, eps2, cel
     return offsets, anchors, weights
 
 
+@numba.njit(cache=True, inline="always")
+def _nearest(points, row, others, start, stop):
+    """Index in ``[start, stop)`` of the row of ``others`` closest to ``points[row]``."""
+    best = np.inf
+    arg = start
+    for j in range(start, stop):
+        d = 0.0
+        for a in range(3):
+            diff = points[row, a] - others[j, a]
+            d += diff * diff
+        if d < best:
+            best = d
+            arg = j
+    return arg
+
+
 @numba.njit(parallel=True, cache=True)
 def match_along_lines(src_offsets, tgt_offsets, src_points, tgt_points, pair_offsets):
     """Closest-point matching both ways between the intersections of each line.
@@ -389,32 +405,12 @@ def match_along_lines(src_offsets, tgt_offsets, src_points, tgt_points, pair_off
         s0, s1 = src_offsets[line], src_offsets[line + 1]
         g0, g1 = tgt_offsets[line], tgt_offsets[line + 1]
         for s in range(s0, s1):
-            best = np.inf
-            arg = g0
-            for g in range(g0, g1):
-                d = 0.0
-                for a in range(3):
-                    diff = src_points[s, a] - tgt_points[g, a]
-                    d += diff * diff
-                if d < best:
-                    best = d
-                    arg = g
             src_index[p] = s
-            tgt_index[p] = arg
+            tgt_index[p] = _nearest(src_points, s, tgt_points, g0, g1)
             line_of[p] = line
             p += 1
         for g in range(g0, g1):
-            best = np.inf
-            arg = s0
-            for s in range(s0, s1):
-                d = 0.0
-                for a in range(3):
-                    diff = src_points[s, a] - tgt_points[g, a]
-                    d += diff * diff
-                if d < best:
-                    best = d
-                    arg = s
-            src_index[p] = arg
+            src_index[p] = _nearest(tgt_points, g, src_points, s0, s1)
             tgt_index[p] = g
             line_of[p] = line
             p += 1

@@ -94,7 +94,25 @@ def _as_stages(stages: Sequence[Stage | Mapping[str, Any]] | str) -> tuple[Stage
     return tuple(out)
 
 
-class AdamRegistration:
+class _Solver:
+    """Shared plumbing: centring (``run_centered``), FPS subsampling, unit scaling."""
+
+    num_points: int | None
+    center: bool
+
+    def __call__(self, src, tgt, src_normals=None, tgt_normals=None) -> MethodResult:
+        return run_centered(self._solve, src, tgt, src_normals, tgt_normals, center=self.center)
+
+    def _solve(self, src, tgt, src_normals, tgt_normals) -> MethodResult:
+        src_t, tgt_t, radius = _normalise(_subsample(src, self.num_points), _subsample(tgt, self.num_points))
+        pose, info = self._optimise(src_t, tgt_t, lambda T: _unscale(T, radius))
+        return MethodResult(transform=_unscale(pose.numpy(), radius), info=info)
+
+    def _optimise(self, src: torch.Tensor, tgt: torch.Tensor, unscale) -> tuple[torch.Tensor, dict[str, Any]]:
+        raise NotImplementedError
+
+
+class AdamRegistration(_Solver):
     """Adam on ``xi`` in se(3) with any unsupervised registered loss.
 
     Args:
@@ -133,11 +151,7 @@ class AdamRegistration:
         self.monitor = monitor
         self.center = center
 
-    def __call__(self, src, tgt, src_normals=None, tgt_normals=None) -> MethodResult:
-        return run_centered(self._solve, src, tgt, src_normals, tgt_normals, center=self.center)
-
-    def _solve(self, src, tgt, src_normals, tgt_normals) -> MethodResult:
-        src_t, tgt_t, radius = _normalise(_subsample(src, self.num_points), _subsample(tgt, self.num_points))
+    def _optimise(self, src_t, tgt_t, unscale):
         batch = PairBatch(src_xyz=src_t[None], tgt_xyz=tgt_t[None])
         pose = torch.eye(4, dtype=torch.float64)
         curve: list[float] = []
@@ -157,15 +171,15 @@ class AdamRegistration:
                 schedule.step()
                 curve.append(value.item())
                 if self.monitor is not None:
-                    shown = self.monitor(len(curve), _unscale(transform.detach().numpy(), radius), curve[-1])
+                    shown = self.monitor(len(curve), unscale(transform.detach().numpy()), curve[-1])
                 bar.set_postfix(loss=f"{curve[-1]:.4g}", **{k: f"{v:.3g}" for k, v in shown.items()})
                 bar.update()
             pose = (se3_exp(xi) @ pose).detach()
         bar.close()
-        return MethodResult(transform=_unscale(pose.numpy(), radius), info={"loss_curve": curve})
+        return pose, {"loss_curve": curve}
 
 
-class IRLSRegistration:
+class IRLSRegistration(_Solver):
     """The supplementary's SVD solver on the line metric's correspondences.
 
     Args:
@@ -195,11 +209,7 @@ class IRLSRegistration:
         self.monitor = monitor
         self.center = center
 
-    def __call__(self, src, tgt, src_normals=None, tgt_normals=None) -> MethodResult:
-        return run_centered(self._solve, src, tgt, src_normals, tgt_normals, center=self.center)
-
-    def _solve(self, src, tgt, src_normals, tgt_normals) -> MethodResult:
-        src_t, tgt_t, radius = _normalise(_subsample(src, self.num_points), _subsample(tgt, self.num_points))
+    def _optimise(self, src_t, tgt_t, unscale):
         generator = torch.Generator().manual_seed(self.seed)
         pose = torch.eye(4, dtype=torch.float64)
         curve: list[float] = []
@@ -215,8 +225,8 @@ class IRLSRegistration:
                 pose = update.transform[0] @ pose
             curve.append(float((pairs.weights * (pairs.src - pairs.tgt).square().sum(1)).sum() / pairs.weights.sum()))
             if self.monitor is not None:
-                shown = self.monitor(step + 1, _unscale(pose.numpy(), radius), curve[-1])
-        return MethodResult(transform=_unscale(pose.numpy(), radius), info={"loss_curve": curve, **shown})
+                shown = self.monitor(step + 1, unscale(pose.numpy()), curve[-1])
+        return pose, {"loss_curve": curve, **shown}
 
 
 @METHODS.register("adam_loss")

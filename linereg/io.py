@@ -69,8 +69,7 @@ def read_point_cloud(path: str | Path, *, min_points: int = 1) -> PointCloud:
     reader = _read_text if suffix in _TEXT_SUFFIXES else readers.get(suffix)
     if reader is None:
         raise ValueError(
-            f"{path}: unsupported point-cloud extension {path.suffix!r}; "
-            f"supported: {', '.join(POINT_CLOUD_SUFFIXES)}"
+            f"{path}: unsupported point-cloud extension {path.suffix!r}; supported: {', '.join(POINT_CLOUD_SUFFIXES)}"
         )
     try:
         xyz, normals = reader(path)
@@ -89,9 +88,7 @@ def _existing_file(path: str | Path) -> Path:
     return path
 
 
-def _validated(
-    path: Path, xyz: np.ndarray, normals: np.ndarray | None, min_points: int
-) -> PointCloud:
+def _validated(path: Path, xyz: np.ndarray, normals: np.ndarray | None, min_points: int) -> PointCloud:
     """Check shapes, size and finiteness of what a reader returned."""
     if xyz.ndim != 2 or xyz.shape[1] != 3:
         raise ValueError(f"{path}: expected (N, 3) coordinates, got shape {xyz.shape}")
@@ -125,9 +122,7 @@ def _read_ply(path: Path) -> tuple[np.ndarray, np.ndarray | None]:
     xyz = np.column_stack([np.asarray(data[name], dtype=np.float32) for name in "xyz"])
     normals = None
     if {"nx", "ny", "nz"} <= set(names):
-        normals = np.column_stack(
-            [np.asarray(data[name], dtype=np.float32) for name in ("nx", "ny", "nz")]
-        )
+        normals = np.column_stack([np.asarray(data[name], dtype=np.float32) for name in ("nx", "ny", "nz")])
     return xyz.reshape(-1, 3), normals
 
 
@@ -183,10 +178,7 @@ def _read_npz(path: Path) -> tuple[np.ndarray, np.ndarray | None]:
     with np.load(path, allow_pickle=False) as archive:
         key = next((name for name in _NPZ_POINT_KEYS if name in archive.files), None)
         if key is None:
-            raise ValueError(
-                f"no point array: expected one of the keys {_NPZ_POINT_KEYS}, "
-                f"found {archive.files}"
-            )
+            raise ValueError(f"no point array: expected one of the keys {_NPZ_POINT_KEYS}, found {archive.files}")
         normals = archive["normals"] if "normals" in archive.files else None
         return archive[key], normals
 
@@ -210,15 +202,12 @@ def write_point_cloud(path: str | Path, xyz: np.ndarray, normals: np.ndarray | N
     if normals is not None:
         check_points(normals, "normals", batched=False)
         if normals.shape != xyz.shape:
-            raise ValueError(
-                f"normals must have the shape of xyz {xyz.shape}, got {tuple(normals.shape)}"
-            )
+            raise ValueError(f"normals must have the shape of xyz {xyz.shape}, got {tuple(normals.shape)}")
         normals = np.asarray(normals, dtype=np.float32)
     suffix = path.suffix.lower()
     if suffix not in POINT_CLOUD_SUFFIXES:
         raise ValueError(
-            f"{path}: unsupported point-cloud extension {path.suffix!r}; "
-            f"supported: {', '.join(POINT_CLOUD_SUFFIXES)}"
+            f"{path}: unsupported point-cloud extension {path.suffix!r}; supported: {', '.join(POINT_CLOUD_SUFFIXES)}"
         )
     path.parent.mkdir(parents=True, exist_ok=True)
     columns = xyz if normals is None else np.hstack([xyz, normals])
@@ -348,10 +337,7 @@ def read_mesh(path: str | Path):
 
     path = _existing_file(path)
     if path.suffix.lower() not in MESH_SUFFIXES:
-        raise ValueError(
-            f"{path}: unsupported mesh extension {path.suffix!r}; "
-            f"supported: {', '.join(MESH_SUFFIXES)}"
-        )
+        raise ValueError(f"{path}: unsupported mesh extension {path.suffix!r}; supported: {', '.join(MESH_SUFFIXES)}")
     try:
         loaded = trimesh.load(path, process=False)
     except Exception as error:

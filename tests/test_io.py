@@ -37,9 +37,7 @@ def _rigid(angle: float = 0.3) -> np.ndarray:
 
 @pytest.mark.parametrize("suffix", POINT_CLOUD_SUFFIXES)
 @pytest.mark.parametrize("with_normals", [True, False])
-def test_round_trip_every_format(
-    tmp_path: Path, cloud: PointCloud, suffix: str, with_normals: bool
-) -> None:
+def test_round_trip_every_format(tmp_path: Path, cloud: PointCloud, suffix: str, with_normals: bool) -> None:
     path = tmp_path / "nested" / "folder" / f"cloud{suffix}"
     write_point_cloud(path, cloud.xyz, cloud.normals if with_normals else None)
     loaded = read_point_cloud(path)

@@ -55,9 +55,7 @@ def test_knn_cdist_path_matches_kdtree() -> None:
     generator = torch.Generator().manual_seed(1)
     query = torch.rand(2, 300, 3, generator=generator, dtype=torch.float64)
     reference = torch.rand(2, 200, 3, generator=generator, dtype=torch.float64)
-    torch.testing.assert_close(
-        _knn_indices_cdist(query, reference, 5), knn(query, reference, 5).idx, rtol=0, atol=0
-    )
+    torch.testing.assert_close(_knn_indices_cdist(query, reference, 5), knn(query, reference, 5).idx, rtol=0, atol=0)
 
 
 @pytest.mark.parametrize("rows_per_chunk", [7, 90])
@@ -123,13 +121,9 @@ def test_knn_errors() -> None:
 
 def test_mean_neighbor_distance_unit_lattice() -> None:
     lattice = _lattice(4)
-    torch.testing.assert_close(
-        mean_neighbor_distance(lattice, k=2), torch.tensor(1.0, dtype=torch.float64)
-    )
+    torch.testing.assert_close(mean_neighbor_distance(lattice, k=2), torch.tensor(1.0, dtype=torch.float64))
     batched = torch.from_numpy(np.stack([lattice, 2.5 * lattice]))
-    torch.testing.assert_close(
-        mean_neighbor_distance(batched, k=1), torch.tensor([1.0, 2.5], dtype=torch.float64)
-    )
+    torch.testing.assert_close(mean_neighbor_distance(batched, k=1), torch.tensor([1.0, 2.5], dtype=torch.float64))
 
 
 def test_mean_neighbor_distance_edge_cases() -> None:

@@ -16,6 +16,11 @@ Candidate search, without ever testing all point-line pairs:
   own parameter ``t_p``, which finds every candidate exactly once.
 
 Work is ``O(N + L * (cells crossed + points met))``; memory ``O(N + L + hits)``.
+
+The kernels are deliberately serial: torch's OpenMP team already uses the cores, a second
+(numba) thread team only competes with it, and data-loader workers and DDP processes would
+oversubscribe the machine. Serial, they meet the loss targets on the 2-core CPU
+(``scripts/bench_loss.py``).
 """
 
 from __future__ import annotations
@@ -24,9 +29,6 @@ import math
 
 import numba
 import numpy as np
-
-# torch already runs on OpenMP; the TBB that Open3D ships is too old for numba and only warns.
-numba.config.THREADING_LAYER_PRIORITY = ["omp", "workqueue", "tbb"]
 
 MODE_CANDIDATES = 0  # Insec1: every candidate point is an intersection
 MODE_CONVEX = 1  # paper Eq. (7): candidates whose k nearest neighbours are candidates too
@@ -287,7 +289,7 @@ def _scan_line(
     return count
 
 
-@numba.njit(parallel=True, cache=True)
+@numba.njit(cache=True)
 def line_intersections(origins, dirs, points, radius, neighbors, mode, eps2, cell):
     """All intersections of ``L`` lines with one cloud.
 
@@ -312,7 +314,7 @@ def line_intersections(origins, dirs, points, radius, neighbors, mode, eps2, cel
     counts = np.zeros(n_lines + 1, dtype=np.int64)
     dummy_anchor = np.empty(0, dtype=np.int64)
     dummy_weight = np.empty((0, k + 1))
-    for line in numba.prange(n_lines):
+    for line in range(n_lines):
         counts[line + 1] = _scan_line(
             line,
             origins,
@@ -336,7 +338,7 @@ def line_intersections(origins, dirs, points, radius, neighbors, mode, eps2, cel
     offsets = np.cumsum(counts)
     anchors = np.empty(offsets[-1], dtype=np.int64)
     weights = np.zeros((offsets[-1], k + 1))
-    for line in numba.prange(n_lines):
+    for line in range(n_lines):
         if offsets[line + 1] > offsets[line]:
             _scan_line(
                 line,
@@ -377,7 +379,7 @@ def _nearest(points, row, others, start, stop):
     return arg
 
 
-@numba.njit(parallel=True, cache=True)
+@numba.njit(cache=True)
 def match_along_lines(src_offsets, tgt_offsets, src_points, tgt_points, pair_offsets):
     """Closest-point matching both ways between the intersections of each line.
 
@@ -398,7 +400,7 @@ def match_along_lines(src_offsets, tgt_offsets, src_points, tgt_points, pair_off
     src_index = np.empty(n_pairs, dtype=np.int64)
     tgt_index = np.empty(n_pairs, dtype=np.int64)
     line_of = np.empty(n_pairs, dtype=np.int64)
-    for line in numba.prange(n_lines):
+    for line in range(n_lines):
         p = pair_offsets[line]
         if pair_offsets[line + 1] == p:
             continue

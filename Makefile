@@ -5,7 +5,7 @@ PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 
 .DEFAULT_GOAL := help
-.PHONY: help setup test test-full lint
+.PHONY: help setup test test-full lint train train-full
 
 help:  ## list the targets
 	@grep -E '^[a-z-]+:.*##' $(MAKEFILE_LIST) | awk -F':.*## ' '{printf "  make %-10s %s\n", $$1, $$2}'
@@ -32,3 +32,9 @@ test-full: setup  ## run every test, the slow ones included
 
 lint: setup  ## ruff
 	$(VENV)/bin/ruff check .
+
+train: setup  ## train the embedded default: RPM-Net + line loss on procedural shapes (~15 min, CPU)
+	$(PY) -m train
+
+train-full: setup  ## the paper's RPM-Net + line-loss configuration (python -m train experiment=rpm_ours)
+	$(PY) -m train experiment=rpm_ours

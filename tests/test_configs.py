@@ -1,0 +1,178 @@
+"""Every Hydra config composes and every component it names builds (lightning-hydra-template style)."""
+
+from __future__ import annotations
+
+import importlib.util
+from pathlib import Path
+
+import pytest
+import torch
+from hydra import compose, initialize_config_dir
+from hydra.errors import ConfigCompositionException
+from omegaconf import OmegaConf, open_dict
+
+from models import build_model
+from train.checkpoint import build_loss_from_config
+from train.curriculum import Curriculum, dataset_config
+from train.loop import TrainerSettings, build_optimizer, build_scheduler
+
+ROOT = Path(__file__).resolve().parent.parent
+CONFIGS = ROOT / "configs"
+EXPERIMENTS = sorted(p.stem for p in (CONFIGS / "experiment").glob("*.yaml"))
+PATHS = [f"paths.root_dir={ROOT}", "paths.output_dir=/tmp/linereg-config-test"]
+
+
+def compose_config(name: str = "train", overrides: list[str] | None = None):
+    """Compose ``configs/<name>.yaml`` with overrides (outside any Hydra run)."""
+    with initialize_config_dir(str(CONFIGS), version_base="1.3"):
+        return compose(name, overrides=[*PATHS, *(overrides or [])])
+
+
+def build_components(cfg) -> None:
+    """Build what a run builds before touching data: model, loss, optimizer, scheduler, ..."""
+    model = build_model(OmegaConf.to_container(cfg.model, resolve=True))
+    build_loss_from_config(cfg.loss)
+    optimizer = build_optimizer(model.parameters(), cfg.optimizer)
+    curriculum = Curriculum.from_config(cfg.curriculum)
+    build_scheduler(optimizer, cfg.scheduler, curriculum.stages[0].epochs)
+    TrainerSettings.from_config(cfg.trainer)
+    for split in ("train", "val", "test"):
+        dataset_config(cfg.dataset, split)
+    for stage in curriculum.stages:
+        if stage.variant is not None:
+            dataset_config(cfg.dataset, "train", stage.variant)
+
+
+def test_experiment_list_is_complete():
+    expected = {f"{m}_{l}" for m in ("rpm", "dcp", "fmr") for l in ("ours", "cd", "cdw", "gt")}
+    assert set(EXPERIMENTS) == expected
+
+
+def test_default_config_builds():
+    cfg = compose_config()
+    assert cfg.model.name == "rpmnet" and "alignment" in cfg.loss.terms
+    assert cfg.loss.terms.alignment.name == "line_intersection"
+    assert cfg.dataset.name == "procedural"
+    build_components(cfg)
+
+
+@pytest.mark.parametrize("experiment", EXPERIMENTS)
+def test_experiment_composes_and_builds(experiment):
+    cfg = compose_config(overrides=[f"experiment={experiment}"])
+    assert cfg.task_name == experiment
+    build_components(cfg)
+
+
+@pytest.mark.parametrize(
+    ("experiment", "lr", "lines", "radius"),
+    [("rpm_ours", 2e-6, 10000, 1.0), ("dcp_ours", 1e-5, 15000, 0.5), ("fmr_ours", 1e-5, 15000, 0.5)],
+)
+def test_experiment_values_win_over_train_yaml(experiment, lr, lines, radius):
+    """``_self_`` first in train.yaml: the experiment's values are the ones used (notes §0 #7)."""
+    cfg = compose_config(overrides=[f"experiment={experiment}"])
+    assert cfg.optimizer.lr == pytest.approx(lr)
+    alignment = OmegaConf.to_container(cfg.loss, resolve=True)["terms"]["alignment"]
+    assert (alignment["num_lines"], alignment["radius_factor"]) == (lines, radius)
+    assert cfg.trainer.num_points == 1024
+    assert cfg.dataset.protocol.num_points == 1024  # the dataset follows trainer.num_points
+
+
+def test_paper_loss_weights():
+    terms = {
+        name: OmegaConf.to_container(compose_config(overrides=[f"experiment={name}"]).loss.terms, resolve=True)
+        for name in ("rpm_ours", "dcp_ours", "fmr_ours")
+    }
+    assert terms["rpm_ours"]["outlier"]["weight"] == 10.0 and terms["rpm_ours"]["alignment"]["weight"] == 1.0
+    assert terms["dcp_ours"]["cycle"]["weight"] == 0.01
+    assert terms["fmr_ours"]["reconstruction"]["weight"] == 0.001
+    assert terms["fmr_ours"]["alignment"]["last_k"] == 3
+
+
+@pytest.mark.parametrize(
+    "group", ["model", "loss", "dataset", "curriculum", "optimizer", "scheduler", "logger", "debug"]
+)
+def test_every_group_option_composes(group):
+    for option in sorted(p.stem for p in (CONFIGS / group).glob("*.yaml")):
+        overrides = [f"{group}={option}"]
+        if group == "loss" and option.startswith(("dcp", "fmr")):
+            overrides.append(f"model={'dcp_v2' if option.startswith('dcp') else 'fmr'}")
+        cfg = compose_config(overrides=overrides)
+        if group in ("model", "loss", "optimizer", "curriculum", "scheduler"):
+            build_components(cfg)
+
+
+def test_sweep_handle_on_a_loss_without_it_warns():
+    cfg = compose_config(overrides=["experiment=rpm_cd", "loss.nu0=0.1"])
+    with pytest.warns(UserWarning, match=r"loss.nu0=0.1 has no effect"):
+        build_loss_from_config(cfg.loss)
+
+
+def test_sweep_handle_reaches_the_term():
+    cfg = compose_config(overrides=["experiment=rpm_ours", "loss.nu0=2"])
+    loss = build_loss_from_config(cfg.loss)
+    assert loss.parts["alignment"].options.nu0 == 2.0
+
+
+def test_unknown_command_line_key_is_rejected():
+    with pytest.raises(ConfigCompositionException, match=r"trainer\.batch_sise"):
+        compose_config(overrides=["trainer.batch_sise=4"])
+
+
+def test_unknown_keys_in_config_files_give_clear_errors():
+    cfg = compose_config()
+    with open_dict(cfg):
+        cfg.trainer.batch_sise = 4
+        cfg.curriculum.stages.full.epoch = 3
+        cfg.loss.terms.alignment.num_line = 10
+        cfg.model.neighbours = 3
+    with pytest.raises(ValueError, match=r"unknown trainer key\(s\) \['batch_sise'\]"):
+        TrainerSettings.from_config(cfg.trainer)
+    with pytest.raises(ValueError, match=r"stage 'full': unknown key\(s\) \['epoch'\]"):
+        Curriculum.from_config(cfg.curriculum)
+    with pytest.raises(TypeError, match="num_line"):
+        build_loss_from_config(cfg.loss)
+    with pytest.raises(TypeError, match="neighbours"):
+        build_model(OmegaConf.to_container(cfg.model))
+
+
+def test_optimizer_with_unknown_argument():
+    with pytest.raises(TypeError, match=r"optimizer 'adam'.*momentum"):
+        build_optimizer([torch.nn.Parameter(torch.zeros(1))], {"name": "adam", "lr": 1e-3, "momentum": 0.9})
+    with pytest.raises(KeyError, match="registered: adam, adamw, sgd"):
+        build_optimizer([torch.nn.Parameter(torch.zeros(1))], {"name": "adagrad", "lr": 1e-3})
+
+
+def test_hydra_sweep_folder_names_are_readable():
+    with initialize_config_dir(str(CONFIGS), version_base="1.3"):
+        full = compose("train", overrides=PATHS, return_hydra_config=True)
+    sweep = OmegaConf.to_container(full.hydra.sweep, resolve=False)
+    assert sweep["subdir"] == "${hydra.job.num}_${hydra.job.override_dirname}"
+    assert full.hydra.job.config.override_dirname.kv_sep == "="
+    assert full.hydra.callbacks.sweep_summary._target_ == "train.summary.SweepSummary"
+
+
+@pytest.mark.skipif(importlib.util.find_spec("hydra_plugins.hydra_optuna_sweeper") is None, reason="no optuna sweeper")
+def test_optuna_search_composes():
+    with initialize_config_dir(str(CONFIGS), version_base="1.3"):
+        cfg = compose("train", overrides=[*PATHS, "hparams_search=optuna"], return_hydra_config=True)
+    assert cfg.hydra.sweeper.params["loss.nu0"] == "interval(0.1, 2.0)"
+    assert cfg.optimized_metric == "val/err_r_deg_mean"
+
+
+@pytest.mark.skipif(
+    importlib.util.find_spec("hydra_plugins.hydra_submitit_launcher") is None, reason="no submitit launcher"
+)
+def test_slurm_launcher_composes():
+    with initialize_config_dir(str(CONFIGS), version_base="1.3"):
+        cfg = compose("train", overrides=[*PATHS, "launcher=slurm"], return_hydra_config=True)
+    assert cfg.hydra.launcher.tasks_per_node == 1
+    assert "submitit" in cfg.hydra.launcher._target_
+
+
+def test_evaluate_config_composes_with_a_dataset():
+    cfg = compose_config(
+        "evaluate", overrides=["checkpoint=x.pt", "dataset=modelnet40_airplane", "trainer.num_points=256"]
+    )
+    assert cfg.dataset.categories == "airplane"
+    assert dataset_config(cfg.dataset, "test")["protocol"]["num_points"] == 256
+    assert compose_config("evaluate", overrides=["checkpoint=x.pt"]).get("dataset") is None

@@ -1,0 +1,91 @@
+"""``python -m train.evaluate``: round trip from a training run, other datasets, figures."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from hydra import compose, initialize_config_dir
+
+from train import loop
+from train.evaluate import Evaluation, evaluate, report
+from train.figures import plot_registration, registration_figure
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def _compose(name: str, overrides: list[str]):
+    with initialize_config_dir(str(ROOT / "configs"), version_base="1.3"):
+        return compose(name, overrides=[f"paths.root_dir={ROOT}", *overrides])
+
+
+@pytest.fixture(scope="module")
+def trained_run(tmp_path_factory):
+    """A tiny RPM-Net run: (run folder, its metrics)."""
+    run_dir = tmp_path_factory.mktemp("run")
+    cfg = _compose(
+        "train", ["debug=tiny", f"paths.output_dir={run_dir}", "model.num_neighbors=8", "loss.num_lines=300"]
+    )
+    return run_dir, loop.train(cfg)["metrics"]
+
+
+def test_round_trip_matches_the_training_evaluation(trained_run, tmp_path):
+    run_dir, train_metrics = trained_run
+    cfg = _compose("evaluate", [f"checkpoint={run_dir}", f"output_dir={tmp_path}", "num_figures=2", "progress=false"])
+    content = evaluate(cfg)
+    assert content["num_pairs"] == 2 and content["split"] == "test" and content["labelled"]
+    for key in ("err_r_deg_mean", "err_t_l2_mean", "err_pw_l1_mean", "recall@0.1"):
+        assert content["model"][key] == pytest.approx(train_metrics[f"test/{key}"], rel=1e-5, abs=1e-7)
+        assert content["identity"][key] == pytest.approx(train_metrics[f"test/identity/{key}"], rel=1e-6)
+    assert json.loads((tmp_path / "metrics.json").read_text()) == json.loads(json.dumps(content))
+    rows = (tmp_path / "pairs.csv").read_text().splitlines()
+    assert rows[0].startswith("pair,err_r_deg,err_t_l1") and len(rows) == 3
+    assert sorted(p.name for p in (tmp_path / "figures").iterdir()) == ["pair_0000.png", "pair_0001.png"]
+    table = (tmp_path / "table.md").read_text()
+    assert "| identity (no motion) |" in table and "alpha=0.05" in table
+
+
+def test_evaluate_on_another_dataset_and_split(trained_run, tmp_path, capsys):
+    run_dir, _ = trained_run
+    cfg = _compose(
+        "evaluate",
+        [
+            f"checkpoint={run_dir}/checkpoints/last.pt",
+            "dataset=procedural",
+            "dataset.cache_dir=null",
+            "dataset.protocol.num_views=3",
+            "dataset.protocol.image_size=48",
+            "dataset.splits.val.num_shapes=1",
+            "split=val",
+            "trainer.num_points=96",
+            f"output_dir={tmp_path}",
+            "num_figures=0",
+            "with_loss=false",
+            "progress=false",
+        ],
+    )
+    content = evaluate(cfg)
+    assert content["num_pairs"] == 3 and content["split"] == "val"
+    assert "loss" not in content["model"]
+    assert "Err_R (deg)" in capsys.readouterr().out
+
+
+def test_report_of_unlabelled_data():
+    text = report("model", Evaluation(num_pairs=3, losses={"loss": 0.25}), [0.1])
+    assert text == "3 pairs without ground truth: no registration errors; mean loss 0.25."
+
+
+def test_plot_registration_writes_a_png(tmp_path):
+    rng = np.random.default_rng(0)
+    src = rng.normal(size=(300, 3))
+    T = np.eye(4)
+    T[:3, 3] = [0.5, 0.0, 0.0]
+    path = plot_registration(torch.from_numpy(src), src + T[:3, 3], T, tmp_path / "sub" / "pair.png", title="t")
+    assert path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    figure = registration_figure(src, src, T)
+    assert len(figure.axes) == 2
+    with pytest.raises(ValueError, match=r"T must have shape \(4, 4\)"):
+        registration_figure(src, src, np.eye(3))

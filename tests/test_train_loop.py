@@ -1,0 +1,175 @@
+"""Fast dev runs of ``train(cfg)`` (``debug=tiny``): every model, unlabelled data, NaN handling."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from hydra import compose, initialize_config_dir
+
+from linereg.io import write_point_cloud
+from linereg.structures import LossOutput
+from losses import Loss
+from train import loop
+from train.checkpoint import load_checkpoint
+from train.logging import read_scalars
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def tiny_config(output_dir: Path, *overrides: str, debug: str | None = "tiny"):
+    """``configs/train.yaml`` with a debug preset and the run folder in ``output_dir``."""
+    preset = [f"debug={debug}"] if debug else []
+    with initialize_config_dir(str(ROOT / "configs"), version_base="1.3"):
+        return compose(
+            "train",
+            overrides=[*preset, f"paths.root_dir={ROOT}", f"paths.output_dir={output_dir}", *overrides],
+        )
+
+
+# debug=tiny without its procedural-data settings, for other datasets.
+SMALL_RUN = [
+    "trainer.device=cpu",
+    "trainer.threads=1",
+    "trainer.num_points=64",
+    "trainer.batch_size=2",
+    "trainer.eval_batch_size=2",
+    "trainer.max_steps_per_epoch=2",
+    "trainer.progress=false",
+    "logger=none",
+    "model.num_neighbors=8",
+    "curriculum=none",
+    "curriculum.stages.full.epochs=2",
+]
+
+
+SMALL_MODELS = {
+    "rpm": ["model.num_neighbors=8"],
+    "dcp": ["model.emb_dims=64", "model.ff_dims=64", "model.k=8"],
+    "fmr": ["model.dim_k=64"],
+}
+EXPERIMENTS = sorted(p.stem for p in (ROOT / "configs" / "experiment").glob("*.yaml"))
+
+
+@pytest.mark.parametrize("experiment", ["rpm_ours", "dcp_ours", "fmr_ours"])
+def test_fast_dev_run_of_every_model(tmp_path, experiment):
+    extra = [*SMALL_MODELS[experiment.split("_")[0]], "loss.num_lines=400"]
+    cfg = tiny_config(tmp_path, f"experiment={experiment}", *extra)
+    result = loop.train(cfg)
+    metrics = result["metrics"]
+    for key in ("val/err_r_deg_mean", "test/err_r_deg_mean", "test/identity/err_r_deg_mean", "test/recall@0.05"):
+        assert np.isfinite(metrics[key]), key
+    checkpoint = load_checkpoint(result["last_checkpoint"])
+    # 4 training pairs: the easy stage (2 pairs) and the half stage take 1 step, the last 2.
+    assert checkpoint["progress"] == {"epoch": 3, "global_step": 4, "stage": 2, "stage_name": "full"}
+    assert checkpoint["config"]["task_name"] == "tiny"
+    assert (tmp_path / "checkpoints" / "best.pt").is_file()
+    assert (tmp_path / "evaluation" / "metrics.json").is_file()
+    assert json.loads((tmp_path / "metrics.json").read_text())["metrics"]["best_epoch"] in (1, 2, 3)
+    records = read_scalars(tmp_path)
+    steps = [r for r in records if "train/loss" in r]
+    assert len(steps) == 4
+    assert {"train/loss/alignment", "train/lr", "train/grad_norm", "train/stats/alignment/lines_hit_both"} <= set(
+        steps[0]
+    )
+    stage_changes = [r["curriculum/stage"] for r in records if "curriculum/stage" in r]
+    assert stage_changes == [0, 1, 2]
+
+
+@pytest.mark.parametrize("experiment", EXPERIMENTS)
+def test_every_experiment_trains(tmp_path, experiment):
+    cfg = tiny_config(tmp_path, f"experiment={experiment}", *SMALL_MODELS[experiment.split("_")[0]])
+    metrics = loop.train(cfg)["metrics"]
+    assert np.isfinite(metrics["test/err_r_deg_mean"]) and np.isfinite(metrics["val/loss"])
+
+
+def test_curriculum_sets_data_and_learning_rate(tmp_path):
+    cfg = tiny_config(
+        tmp_path,
+        "model.num_neighbors=8",
+        "loss.num_lines=300",
+        "optimizer.lr=1e-3",
+        "curriculum.stages.easy.lr=5e-3",
+        "curriculum.stages.full.lr_scale=0.1",
+        "dataset.splits.train.num_shapes=3",
+        "dataset.protocol.num_views=2",
+    )
+    loop.train(cfg)
+    records = read_scalars(tmp_path)
+    pairs = [r["curriculum/train_pairs"] for r in records if "curriculum/train_pairs" in r]
+    assert pairs == [2, 3, 6]  # easy subset of 2, half of 6, all 6
+    lrs = [r["train/lr"] for r in records if "train/lr" in r]
+    assert lrs == pytest.approx([5e-3, 1e-3, 1e-3, 1e-4, 1e-4])
+
+
+def _unlabelled_pairs(folder: Path, count: int = 4) -> None:
+    """Pairs of random blobs without ``_gt.txt`` files (a dataset with no ground truth)."""
+    rng = np.random.default_rng(0)
+    folder.mkdir()
+    for i in range(count):
+        cloud = rng.normal(size=(200, 3)) * [1.0, 0.6, 0.3]
+        write_point_cloud(folder / f"p{i}_src.ply", cloud)
+        write_point_cloud(folder / f"p{i}_tgt.ply", cloud + 0.05)
+
+
+def test_unsupervised_run_without_any_ground_truth(tmp_path):
+    data = tmp_path / "pairs"
+    _unlabelled_pairs(data)
+    overrides = ["dataset=pairs_folder", f"dataset.root={data}", "dataset.splits.val={}", "loss.num_lines=300"]
+    cfg = tiny_config(tmp_path / "run", *SMALL_RUN, *overrides, debug=None)
+    with pytest.warns(UserWarning, match="selecting the best checkpoint by val/loss"):
+        result = loop.train(cfg)
+    metrics = result["metrics"]
+    assert "val/loss" in metrics and "test/err_r_deg_mean" not in metrics
+    assert json.loads((tmp_path / "run" / "evaluation" / "metrics.json").read_text())["labelled"] is False
+
+
+def test_supervised_loss_on_unlabelled_data_is_refused(tmp_path):
+    data = tmp_path / "pairs"
+    _unlabelled_pairs(data)
+    cfg = tiny_config(
+        tmp_path / "run", "experiment=rpm_gt", *SMALL_RUN, "dataset=pairs_folder", f"dataset.root={data}", debug=None
+    )
+    with pytest.raises(ValueError, match=r"needs batch\.gt_transform"):
+        loop.train(cfg)
+
+
+class _PoisonedLoss(Loss):
+    """Chamfer-free stand-in: a finite loss, except NaN when the batch holds pair ``bad_index``."""
+
+    def __init__(self, bad_index: int) -> None:
+        super().__init__()
+        self.bad_index = bad_index
+
+    def compute(self, output, batch):
+        value = (output.transform[:, :3, 3] ** 2).sum(dim=1)
+        bad = torch.tensor([m["index"] == self.bad_index for m in batch.meta])
+        value = torch.where(bad, torch.full_like(value, float("nan")), value)
+        return LossOutput(total=value.mean(), terms={"toy": value.mean()})
+
+
+def test_nan_loss_skips_the_step_and_names_the_sample(tmp_path, monkeypatch):
+    monkeypatch.setattr(loop, "build_loss_from_config", lambda config: _PoisonedLoss(bad_index=1))
+    cfg = tiny_config(
+        tmp_path, "model.num_neighbors=8", "curriculum=none", "curriculum.stages.full.epochs=1", "trainer.batch_size=4"
+    )
+    with pytest.warns(RuntimeWarning, match=r"step skipped: non-finite loss nan .*sample \d \(meta \{.*'index': 1"):
+        result = loop.train(cfg)
+    assert load_checkpoint(result["last_checkpoint"])["progress"]["global_step"] == 0
+
+
+def test_repeated_nan_losses_stop_the_run(tmp_path, monkeypatch):
+    monkeypatch.setattr(loop, "build_loss_from_config", lambda config: _PoisonedLoss(bad_index=1))
+    cfg = tiny_config(
+        tmp_path,
+        "model.num_neighbors=8",
+        "curriculum=none",
+        "curriculum.stages.full.epochs=1",
+        "trainer.batch_size=4",
+        "trainer.max_bad_steps=1",
+    )
+    with pytest.raises(FloatingPointError, match="1 consecutive steps"), pytest.warns(RuntimeWarning):
+        loop.train(cfg)

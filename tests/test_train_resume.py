@@ -1,0 +1,156 @@
+"""Checkpoints: atomic writes, safe loading, RNG states, and exact resumption of a run."""
+
+from __future__ import annotations
+
+import os
+import random
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from hydra import compose, initialize_config_dir
+
+from losses import build_loss
+from train import checkpoint, loop
+from train.logging import read_scalars
+
+ROOT = Path(__file__).resolve().parent.parent
+SMALL = ["model.num_neighbors=8", "loss.num_lines=300"]
+
+
+def tiny_config(output_dir: Path, *overrides: str):
+    """``debug=tiny`` with the run folder in ``output_dir``."""
+    with initialize_config_dir(str(ROOT / "configs"), version_base="1.3"):
+        return compose(
+            "train",
+            overrides=["debug=tiny", f"paths.root_dir={ROOT}", f"paths.output_dir={output_dir}", *SMALL, *overrides],
+        )
+
+
+def _step_losses(run_dir: Path) -> dict[int, float]:
+    """``{global step: training loss}``, the last record winning (a resumed run re-logs)."""
+    return {record["step"]: record["train/loss"] for record in read_scalars(run_dir) if "train/loss" in record}
+
+
+def _interrupt_at(monkeypatch, epoch: int) -> None:
+    """Make the run raise KeyboardInterrupt when epoch ``epoch`` (0-based) starts."""
+    original = loop.Trainer._train_epoch
+
+    def train_epoch(self):
+        if self.epoch == epoch:
+            raise KeyboardInterrupt
+        return original(self)
+
+    monkeypatch.setattr(loop.Trainer, "_train_epoch", train_epoch)
+
+
+@pytest.mark.parametrize(
+    ("overrides", "interrupt_epoch"),
+    [
+        ([], 2),  # resumes into the next curriculum stage
+        (["curriculum=none", "curriculum.stages.full.epochs=3", "scheduler=cosine"], 1),  # inside a stage
+    ],
+    ids=["stage_boundary", "mid_stage"],
+)
+def test_resume_gives_the_same_next_step(tmp_path, monkeypatch, overrides, interrupt_epoch):
+    uninterrupted = loop.train(tiny_config(tmp_path / "a", *overrides))
+
+    _interrupt_at(monkeypatch, interrupt_epoch)
+    with pytest.raises(KeyboardInterrupt):
+        loop.train(tiny_config(tmp_path / "b", *overrides))
+    saved = checkpoint.load_checkpoint(tmp_path / "b" / "checkpoints" / "last.pt")
+    assert saved["progress"]["epoch"] == interrupt_epoch  # nothing but the current epoch is lost
+    monkeypatch.undo()
+    resumed = loop.train(tiny_config(tmp_path / "b", *overrides, "resume=true"))
+
+    first_resumed_step = saved["progress"]["global_step"] + 1
+    losses_a, losses_b = _step_losses(tmp_path / "a"), _step_losses(tmp_path / "b")
+    assert losses_b[first_resumed_step] == losses_a[first_resumed_step]
+    assert losses_b == losses_a
+    final_a = checkpoint.load_checkpoint(uninterrupted["last_checkpoint"])["model"]
+    final_b = checkpoint.load_checkpoint(resumed["last_checkpoint"])["model"]
+    for name, value in final_a.items():
+        torch.testing.assert_close(final_b[name], value, rtol=0, atol=0)
+
+
+def test_resume_takes_the_checkpoint_config(tmp_path, monkeypatch):
+    _interrupt_at(monkeypatch, 1)
+    with pytest.raises(KeyboardInterrupt):
+        loop.train(tiny_config(tmp_path, "optimizer.lr=1e-3"))
+    monkeypatch.undo()
+    with pytest.warns(UserWarning, match=r"ignored differences: \['optimizer.lr'\]"):
+        result = loop.train(tiny_config(tmp_path, "optimizer.lr=5e-2", "resume=true"))
+    assert checkpoint.load_checkpoint(result["last_checkpoint"])["config"]["optimizer"]["lr"] == 1e-3
+
+
+def test_resume_without_a_checkpoint_fails_clearly(tmp_path):
+    with pytest.raises(FileNotFoundError, match=r"resume=true: no checkpoints/last\.pt in"):
+        loop.train(tiny_config(tmp_path / "run", "resume=true"))
+
+
+def test_resume_true_finds_the_newest_sibling_with_the_same_overrides(tmp_path):
+    runs = (("old", ["seed=1"]), ("other", ["seed=2"]), ("new", ["seed=1", "resume=true"]))
+    for age, (name, overrides) in enumerate(runs):
+        run = tmp_path / name
+        checkpoint.save_checkpoint({}, run / "checkpoints" / "last.pt")
+        os.utime(run / "checkpoints" / "last.pt", (1000 + age, 1000 + age))
+        (run / ".hydra").mkdir()
+        (run / ".hydra" / "overrides.yaml").write_text("".join(f"- {o}\n" for o in overrides))
+    current = tmp_path / "current"
+    found = loop._resume_checkpoint(True, current, ["seed=1", "resume=true"])
+    assert found == tmp_path / "new" / "checkpoints" / "last.pt"
+    assert loop._resume_checkpoint(True, current, ["seed=2"]).parent.parent.name == "other"
+    with pytest.raises(FileNotFoundError, match="same overrides"):
+        loop._resume_checkpoint(True, current, ["seed=3"])
+    assert loop._resume_checkpoint(False, current) is None
+
+
+def test_save_is_atomic(tmp_path, monkeypatch):
+    path = tmp_path / "last.pt"
+    checkpoint.save_checkpoint({"value": torch.tensor(1.0)}, path)
+
+    def broken_save(obj, handle):
+        handle.write(b"partial")
+        raise OSError("disk full")
+
+    monkeypatch.setattr(torch, "save", broken_save)
+    with pytest.raises(OSError, match="disk full"):
+        checkpoint.save_checkpoint({"value": torch.tensor(2.0)}, path)
+    monkeypatch.undo()
+    assert float(checkpoint.load_checkpoint(path)["value"]) == 1.0
+    assert [p.name for p in tmp_path.iterdir()] == ["last.pt"]
+
+
+def test_load_rejects_foreign_files(tmp_path):
+    torch.save({"state_dict": {}}, tmp_path / "other.pt")
+    with pytest.raises(ValueError, match="not a linereg checkpoint"):
+        checkpoint.load_checkpoint(tmp_path / "other.pt")
+    with pytest.raises(FileNotFoundError):
+        checkpoint.load_checkpoint(tmp_path / "missing.pt")
+
+
+def test_find_checkpoint_in_a_run_folder(tmp_path):
+    for name in ("last.pt", "best.pt"):
+        checkpoint.save_checkpoint({}, tmp_path / "checkpoints" / name)
+    assert checkpoint.find_checkpoint(tmp_path).name == "best.pt"
+    assert checkpoint.find_checkpoint(tmp_path, prefer=("last.pt",)).name == "last.pt"
+
+
+def test_rng_state_round_trip(tmp_path):
+    checkpoint.save_checkpoint({"rng": checkpoint.rng_state()}, tmp_path / "rng.pt")
+    expected = (random.random(), np.random.rand(), torch.rand(1))  # noqa: NPY002
+    checkpoint.restore_rng_state(checkpoint.load_checkpoint(tmp_path / "rng.pt")["rng"])
+    assert (random.random(), np.random.rand()) == expected[:2]  # noqa: NPY002
+    assert torch.equal(torch.rand(1), expected[2])
+
+
+def test_loss_generator_states_round_trip():
+    loss = build_loss({"terms": {"alignment": {"name": "line_intersection", "seed": 3}}})
+    states = checkpoint.generator_states(loss)
+    assert list(states) == ["parts.alignment.generator"]
+    first = torch.rand(4, generator=loss.parts["alignment"].generator)
+    checkpoint.restore_generator_states(loss, states)
+    assert torch.equal(torch.rand(4, generator=loss.parts["alignment"].generator), first)
+    with pytest.raises(ValueError, match="generator states"):
+        checkpoint.restore_generator_states(loss, {})

@@ -1,0 +1,225 @@
+"""Checkpoints: atomic writes, safe loading, RNG states, and components rebuilt from a config.
+
+A checkpoint is a ``torch.save`` dict holding only tensors and plain Python values, so it loads
+with ``torch.load(weights_only=True)``::
+
+    format, version     "linereg-checkpoint", 1
+    config              the resolved run config (model, loss, dataset, curriculum, ...)
+    model               model state dict
+    optimizer, scheduler, scaler
+    progress            {epoch: next epoch to run, global_step, stage, stage_name}
+    best                {metric, value, epoch}
+    rng                 python / numpy / torch (CPU and CUDA) generator states
+    generators          states of the torch.Generator attributes of the loss (line sampling)
+    metrics             validation metrics of the epoch
+
+Runs keep ``<run>/checkpoints/last.pt`` (every epoch) and ``best.pt`` (best monitored metric).
+"""
+
+from __future__ import annotations
+
+import os
+import random
+import warnings
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from omegaconf import DictConfig, OmegaConf
+from torch import nn
+
+import losses.supervised  # noqa: F401  (registers the supervised losses and regularisers)
+from losses import Loss, build_loss
+from models import build_model
+
+FORMAT = "linereg-checkpoint"
+VERSION = 1
+CHECKPOINT_DIR = "checkpoints"
+LAST = "last.pt"
+BEST = "best.pt"
+
+
+def save_checkpoint(state: Mapping[str, Any], path: str | Path) -> Path:
+    """Write ``state`` to ``path`` atomically (temporary file in the same folder, then rename).
+
+    An interrupted write never leaves a truncated checkpoint behind: ``path`` holds either the
+    previous checkpoint or the new one.
+
+    Args:
+        state: the checkpoint contents (tensors and plain Python values).
+        path: destination file.
+
+    Returns:
+        ``path`` as a :class:`~pathlib.Path`.
+    """
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    temporary = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    try:
+        with open(temporary, "wb") as handle:
+            torch.save({"format": FORMAT, "version": VERSION, **state}, handle)
+            handle.flush()
+            os.fsync(handle.fileno())
+        os.replace(temporary, path)
+    finally:
+        temporary.unlink(missing_ok=True)
+    return path
+
+
+def find_checkpoint(path: str | Path, prefer: tuple[str, ...] = (BEST, LAST)) -> Path:
+    """The checkpoint file named by ``path``: the file itself, or in a run folder the first of
+    ``prefer`` found in ``<run>/checkpoints/`` (or directly in the folder).
+
+    Raises:
+        FileNotFoundError: nothing suitable exists.
+    """
+    path = Path(path).expanduser()
+    if path.is_file():
+        return path
+    if path.is_dir():
+        for folder in (path / CHECKPOINT_DIR, path):
+            for name in prefer:
+                if (folder / name).is_file():
+                    return folder / name
+        raise FileNotFoundError(f"no checkpoint ({' or '.join(prefer)}) in {path} or {path / CHECKPOINT_DIR}")
+    raise FileNotFoundError(f"checkpoint not found: {path}")
+
+
+def load_checkpoint(path: str | Path, map_location: str | torch.device = "cpu") -> dict[str, Any]:
+    """Load a checkpoint written by :func:`save_checkpoint` (a file or a run folder).
+
+    Raises:
+        FileNotFoundError: no checkpoint there.
+        ValueError: the file is not a linereg checkpoint of a supported version.
+    """
+    file = find_checkpoint(path)
+    state = torch.load(file, map_location=map_location, weights_only=True)
+    if not isinstance(state, dict) or state.get("format") != FORMAT:
+        raise ValueError(f"{file} is not a linereg checkpoint (written by train/checkpoint.py)")
+    if state.get("version") != VERSION:
+        raise ValueError(f"{file}: checkpoint version {state.get('version')} is not supported (expected {VERSION})")
+    state["path"] = str(file)
+    return state
+
+
+def load_model(path: str | Path, device: str | torch.device = "cpu") -> tuple[nn.Module, dict[str, Any]]:
+    """The model of a checkpoint, rebuilt from its stored config, in evaluation mode.
+
+    Args:
+        path: checkpoint file or run folder (``best.pt`` preferred).
+        device: where to put the model.
+
+    Returns:
+        ``(model, checkpoint)``; ``checkpoint["config"]`` is the run's resolved config.
+    """
+    state = load_checkpoint(path)
+    model = build_model(state["config"]["model"])
+    model.load_state_dict(state["model"])
+    return model.to(device).eval(), state
+
+
+def rng_state() -> dict[str, Any]:
+    """States of the python, numpy and torch (CPU and CUDA) global generators."""
+    numpy_state = np.random.get_state(legacy=False)  # noqa: NPY002 (the global generator, as libraries use it)
+    state = {
+        "python": random.getstate(),
+        "numpy": {
+            "key": torch.from_numpy(numpy_state["state"]["key"].astype(np.int64)),
+            "pos": int(numpy_state["state"]["pos"]),
+            "has_gauss": int(numpy_state["has_gauss"]),
+            "gauss": float(numpy_state["gauss"]),
+        },
+        "torch": torch.get_rng_state(),
+    }
+    if torch.cuda.is_available():
+        state["cuda"] = torch.cuda.get_rng_state_all()
+    return state
+
+
+def restore_rng_state(state: Mapping[str, Any]) -> None:
+    """Restore the generators saved by :func:`rng_state` (CUDA only when available)."""
+    version, internal, gauss = state["python"]
+    random.setstate((version, tuple(internal), gauss))
+    numpy_state = state["numpy"]
+    np.random.set_state(  # noqa: NPY002
+        {
+            "bit_generator": "MT19937",
+            "state": {"key": numpy_state["key"].numpy().astype(np.uint32), "pos": numpy_state["pos"]},
+            "has_gauss": numpy_state["has_gauss"],
+            "gauss": numpy_state["gauss"],
+        }
+    )
+    torch.set_rng_state(state["torch"])
+    if "cuda" in state and torch.cuda.is_available():
+        torch.cuda.set_rng_state_all(state["cuda"])
+
+
+def _generators(module: nn.Module) -> dict[str, torch.Generator]:
+    """Every ``torch.Generator`` attribute of ``module`` and its submodules, by dotted name."""
+    found = {}
+    for prefix, submodule in module.named_modules():
+        for attribute, value in vars(submodule).items():
+            if isinstance(value, torch.Generator):
+                found[f"{prefix}.{attribute}" if prefix else attribute] = value
+    return found
+
+
+def generator_states(module: nn.Module) -> dict[str, torch.Tensor]:
+    """States of the generators a module owns (e.g. the line sampler of the line loss)."""
+    return {name: generator.get_state() for name, generator in _generators(module).items()}
+
+
+def restore_generator_states(module: nn.Module, states: Mapping[str, torch.Tensor]) -> None:
+    """Restore :func:`generator_states`; the names must match the module's generators."""
+    generators = _generators(module)
+    if set(generators) != set(states):
+        raise ValueError(
+            f"the checkpoint holds generator states {sorted(states)} but the loss owns {sorted(generators)}"
+        )
+    for name, state in states.items():
+        generators[name].set_state(state)
+
+
+def _is_handle(value: Any) -> bool:
+    """Whether a loss-config value may serve as a handle: a scalar or null."""
+    return value is None or isinstance(value, bool | int | float | str)
+
+
+def build_loss_from_config(config: Mapping[str, Any] | DictConfig) -> Loss:
+    """The loss of a run config (``configs/loss/``).
+
+    Either a single loss ``{name: ..., **kwargs}`` or a weighted sum
+    ``{terms: {label: {name, weight, **kwargs}}, **handles}``. Handles are top-level scalars
+    that terms reference by interpolation (``nu0: ${loss.nu0}``), so that sweeps can write
+    ``loss.nu0=...`` whatever the term is called; they are not passed to the builder. A handle
+    set to a value but referenced by no term gets a warning (it would change nothing).
+
+    Raises:
+        ValueError: a non-scalar key next to ``terms``.
+        KeyError, TypeError: unknown loss names or arguments (from :func:`losses.build_loss`).
+    """
+    if isinstance(config, DictConfig):
+        raw = OmegaConf.to_container(config, resolve=False)
+        resolved = OmegaConf.to_container(config, resolve=True)
+    else:
+        raw = resolved = dict(config)
+    if "terms" not in resolved:
+        return build_loss(resolved)
+    handles = {key: value for key, value in resolved.items() if key != "terms"}
+    structured = sorted(key for key, value in handles.items() if not _is_handle(value))
+    if structured:
+        raise ValueError(
+            f"loss config: unknown key(s) {structured} next to 'terms' (only scalar handles such as nu0 may "
+            "sit there; put loss arguments inside a term)"
+        )
+    if isinstance(config, DictConfig):
+        referenced = repr(raw["terms"])
+        names = ", ".join(f"{label}: {term.get('name')}" for label, term in resolved["terms"].items())
+        for key, value in handles.items():
+            if value is not None and "${loss." + key + "}" not in referenced:
+                warnings.warn(
+                    f"loss.{key}={value!r} has no effect: no term of this loss ({names}) uses it", stacklevel=2
+                )
+    return build_loss({"terms": resolved["terms"]})

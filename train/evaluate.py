@@ -1,0 +1,361 @@
+"""Evaluate a checkpoint: ``python -m train.evaluate checkpoint=<file or run folder> [dataset=...]``.
+
+Loads the model with the config stored in the checkpoint, runs it on a split of any dataset
+(default: the checkpoint's own dataset, ``split=test``) and prints the paper's table (Err_R in
+degrees; Err_t and Err_pw in l1 and l2, x10^-1 as the paper prints them) for the model and for
+the identity (no motion) baseline, then the alpha-recall (fraction of pairs with
+``Err_pw(l2) < alpha``). Writes into the run folder (``outputs/evaluate/runs/<time>/``, or
+``output_dir=...``):
+
+* ``metrics.json``: means, medians, alpha-recall, loss of the model (when the checkpoint's loss
+  applies) and of the identity;
+* ``pairs.csv``: the errors of every pair;
+* ``figures/pair_XXXX.png``: before/after scatter plots of the first ``num_figures`` pairs.
+
+Unlabelled data (no ``gt_transform``) has no errors: only the loss and the figures are written.
+Config: ``configs/evaluate.yaml``.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import logging
+from collections import defaultdict
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import hydra
+import numpy as np
+import torch
+from omegaconf import DictConfig, open_dict
+from torch import nn
+from torch.utils.data import Dataset
+from tqdm.auto import tqdm
+
+from linereg.metrics import ERROR_KEYS, alpha_recall, paper_table, registration_errors, summarize
+from linereg.structures import PairBatch
+from models import build_model
+from train import distributed
+from train.checkpoint import build_loss_from_config, load_checkpoint
+from train.curriculum import build_split, plain
+from train.figures import plot_registration
+
+log = logging.getLogger(__name__)
+
+IDENTITY = "identity (no motion)"
+
+
+@dataclass
+class KeptPair:
+    """One evaluated pair kept for figures (numpy, valid points only)."""
+
+    src: np.ndarray
+    tgt: np.ndarray
+    transform: np.ndarray
+    gt_transform: np.ndarray | None
+    meta: dict[str, Any]
+
+
+@dataclass
+class Evaluation:
+    """Results of a model on a dataset.
+
+    Attributes:
+        num_pairs: pairs evaluated.
+        errors: per-pair errors ``{key: (P,)}`` (keys of ``linereg.metrics.ERROR_KEYS``), or
+            ``None`` when the data has no ground truth.
+        identity_errors: the same for the identity transform (the no-motion baseline).
+        losses: mean loss total (``loss``) and terms (``loss/<term>``) when a loss was given.
+        stats: mean loss statistics (e.g. line hits), ``stats/<name>``.
+        meta: per-pair metadata, in order.
+        kept: the first pairs with their estimates, for figures.
+    """
+
+    num_pairs: int = 0
+    errors: dict[str, np.ndarray] | None = None
+    identity_errors: dict[str, np.ndarray] | None = None
+    losses: dict[str, float] = field(default_factory=dict)
+    stats: dict[str, float] = field(default_factory=dict)
+    meta: list[dict[str, Any]] = field(default_factory=list)
+    kept: list[KeptPair] = field(default_factory=list)
+
+    @property
+    def labelled(self) -> bool:
+        return self.errors is not None
+
+    def metrics(self, alphas: Sequence[float], *, identity: bool = False) -> dict[str, float]:
+        """Flat metrics: error means/medians and ``recall@<alpha>`` (model, or the identity),
+        plus the loss and statistics (model only)."""
+        errors = self.identity_errors if identity else self.errors
+        values: dict[str, float] = {}
+        if errors is not None:
+            values.update(summarize(errors))
+            recall = alpha_recall(errors["err_pw_l2"], torch.tensor(list(alphas), dtype=torch.float64))
+            values.update({f"recall@{alpha:g}": float(r) for alpha, r in zip(alphas, recall, strict=True)})
+        if not identity:
+            values.update(self.losses)
+            values.update(self.stats)
+        return values
+
+
+def _valid(points: torch.Tensor, lengths: torch.Tensor | None, index: int) -> np.ndarray:
+    """Numpy copy of the valid points of cloud ``index`` of a padded batch."""
+    cloud = points[index] if lengths is None else points[index, : int(lengths[index])]
+    return cloud.detach().cpu().double().numpy()
+
+
+@torch.no_grad()
+def evaluate_model(
+    model: nn.Module,
+    loader: Any,
+    *,
+    device: torch.device,
+    loss: nn.Module | None = None,
+    amp: torch.dtype | None = None,
+    max_batches: int | None = None,
+    keep: int = 0,
+    progress: bool = False,
+    description: str = "evaluate",
+) -> Evaluation:
+    """Run ``model`` (in evaluation mode) over a loader and collect errors and losses.
+
+    Args:
+        model: registration model (``PairBatch -> RegistrationOutput``).
+        loader: iterable of :class:`~linereg.structures.PairBatch`.
+        device: where to compute.
+        loss: optional loss, averaged over batches (weighted by batch size).
+        amp: autocast dtype of the forward (``None``: float32).
+        max_batches: stop after this many batches.
+        keep: keep the first ``keep`` pairs (clouds and estimates) for figures.
+        progress: show a tqdm bar.
+        description: bar label.
+
+    Returns:
+        An :class:`Evaluation`; errors only when every batch has ``gt_transform``.
+    """
+    was_training = model.training
+    model.eval()
+    result = Evaluation()
+    errors: dict[str, list[np.ndarray]] = defaultdict(list)
+    identity: dict[str, list[np.ndarray]] = defaultdict(list)
+    sums: dict[str, float] = defaultdict(float)
+    labelled = True
+    try:
+        for index, batch in enumerate(tqdm(loader, desc=description, disable=not progress, leave=False)):
+            if max_batches is not None and index >= max_batches:
+                break
+            batch: PairBatch = batch.to(device)
+            with distributed.autocast(device, amp):
+                output = model(batch)
+            output = distributed.float32_output(output)
+            size = batch.batch_size
+            if loss is not None:
+                loss_output = loss(output, batch)
+                sums["loss"] += float(loss_output.total) * size
+                for name, value in loss_output.terms.items():
+                    sums[f"loss/{name}"] += float(value) * size
+                for name, value in loss_output.stats.items():
+                    sums[f"stats/{name}"] += float(value) * size
+            T_pred = output.transform.detach()
+            if batch.gt_transform is None:
+                labelled = False
+            else:
+                for key, value in registration_errors(
+                    T_pred, batch.gt_transform, batch.src_xyz, batch.src_lengths
+                ).items():
+                    errors[key].append(value.cpu().numpy())
+                eye = torch.eye(4, dtype=T_pred.dtype, device=T_pred.device).expand_as(T_pred)
+                for key, value in registration_errors(
+                    eye, batch.gt_transform, batch.src_xyz, batch.src_lengths
+                ).items():
+                    identity[key].append(value.cpu().numpy())
+            for b in range(size):
+                if len(result.kept) < keep:
+                    result.kept.append(
+                        KeptPair(
+                            src=_valid(batch.src_xyz, batch.src_lengths, b),
+                            tgt=_valid(batch.tgt_xyz, batch.tgt_lengths, b),
+                            transform=T_pred[b].cpu().double().numpy(),
+                            gt_transform=None
+                            if batch.gt_transform is None
+                            else batch.gt_transform[b].cpu().double().numpy(),
+                            meta=dict(batch.meta[b]) if batch.meta else {},
+                        )
+                    )
+            result.meta.extend(batch.meta if batch.meta else [{} for _ in range(size)])
+            result.num_pairs += size
+    finally:
+        model.train(was_training)
+    if result.num_pairs:
+        result.losses = {k: v / result.num_pairs for k, v in sums.items() if not k.startswith("stats/")}
+        result.stats = {k: v / result.num_pairs for k, v in sums.items() if k.startswith("stats/")}
+    if labelled and errors:
+        result.errors = {key: np.concatenate(errors[key]) for key in ERROR_KEYS}
+        result.identity_errors = {key: np.concatenate(identity[key]) for key in ERROR_KEYS}
+    return result
+
+
+def report(name: str, evaluation: Evaluation, alphas: Sequence[float]) -> str:
+    """The paper's table (model and identity rows) and the alpha-recall table, as markdown."""
+    if not evaluation.labelled:
+        loss = evaluation.losses.get("loss")
+        loss_text = f"; mean loss {loss:.4g}" if loss is not None else ""
+        return f"{evaluation.num_pairs} pairs without ground truth: no registration errors{loss_text}."
+    summaries = {name: evaluation.metrics(alphas), IDENTITY: evaluation.metrics(alphas, identity=True)}
+    recall_header = "| Method | " + " | ".join(f"alpha={a:g}" for a in alphas) + " |"
+    recall_rows = [
+        f"| {row} | " + " | ".join(f"{summary[f'recall@{a:g}']:.3f}" for a in alphas) + " |"
+        for row, summary in summaries.items()
+    ]
+    return "\n".join(
+        [
+            f"Registration errors on {evaluation.num_pairs} pairs (means):",
+            "",
+            paper_table(summaries),
+            "",
+            "Alpha-recall (fraction of pairs with Err_pw l2 < alpha):",
+            "",
+            recall_header,
+            "|---|" + "---|" * len(alphas),
+            *recall_rows,
+        ]
+    )
+
+
+def _pair_name(meta: Mapping[str, Any], position: int) -> str:
+    """A short readable identifier of a pair."""
+    parts = [str(meta[key]) for key in ("shape", "name", "view") if key in meta]
+    return "_".join(parts) if parts else f"pair{position}"
+
+
+def write_evaluation(
+    evaluation: Evaluation,
+    out_dir: str | Path,
+    *,
+    name: str,
+    alphas: Sequence[float],
+    info: Mapping[str, Any] | None = None,
+) -> dict[str, Any]:
+    """Write ``metrics.json``, ``pairs.csv``, ``table.md`` and ``figures/`` into ``out_dir``.
+
+    Args:
+        evaluation: results of :func:`evaluate_model` (with ``keep`` pairs for figures).
+        out_dir: destination folder.
+        name: the model's row label.
+        alphas: alpha-recall thresholds.
+        info: extra entries of ``metrics.json`` (checkpoint, dataset, split, ...).
+
+    Returns:
+        The ``metrics.json`` contents.
+    """
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    content = {
+        **(info or {}),
+        "num_pairs": evaluation.num_pairs,
+        "labelled": evaluation.labelled,
+        "alphas": list(alphas),
+        "model": evaluation.metrics(alphas),
+    }
+    if evaluation.labelled:
+        content["identity"] = evaluation.metrics(alphas, identity=True)
+        with open(out_dir / "pairs.csv", "w", newline="") as handle:
+            writer = csv.writer(handle)
+            writer.writerow(["pair", *ERROR_KEYS, *(f"identity_{k}" for k in ERROR_KEYS)])
+            for i, meta in enumerate(evaluation.meta):
+                writer.writerow(
+                    [_pair_name(meta, i)]
+                    + [f"{evaluation.errors[k][i]:.6g}" for k in ERROR_KEYS]
+                    + [f"{evaluation.identity_errors[k][i]:.6g}" for k in ERROR_KEYS]
+                )
+    (out_dir / "metrics.json").write_text(json.dumps(content, indent=2))
+    (out_dir / "table.md").write_text(report(name, evaluation, alphas) + "\n")
+    for i, pair in enumerate(evaluation.kept):
+        title = _pair_name(pair.meta, i)
+        if pair.gt_transform is not None:
+            errors = registration_errors(
+                torch.from_numpy(pair.transform)[None],
+                torch.from_numpy(pair.gt_transform)[None],
+                torch.from_numpy(pair.src)[None],
+            )
+            title += f"  Err_R {float(errors['err_r_deg'][0]):.2f} deg, Err_pw(l2) {float(errors['err_pw_l2'][0]):.4f}"
+        plot_registration(pair.src, pair.tgt, pair.transform, out_dir / "figures" / f"pair_{i:04d}.png", title=title)
+    return content
+
+
+def evaluate(cfg: DictConfig) -> dict[str, Any]:
+    """Evaluate ``cfg.checkpoint`` on ``cfg.split`` of ``cfg.dataset`` (or the checkpoint's dataset).
+
+    Args:
+        cfg: the composed ``configs/evaluate.yaml``.
+
+    Returns:
+        The ``metrics.json`` contents (``model``/``identity`` metrics, counts, paths).
+    """
+    device = distributed.resolve_device(cfg.device)
+    distributed.set_threads(cfg.threads)
+    state = load_checkpoint(cfg.checkpoint)
+    stored = state["config"]
+    model = build_model(stored["model"])
+    model.load_state_dict(state["model"])
+    model.to(device)
+    with open_dict(cfg):
+        if cfg.trainer.num_points is None:
+            cfg.trainer.num_points = stored["trainer"]["num_points"]
+    dataset_config = plain(cfg.dataset) if cfg.get("dataset") else stored["dataset"]
+    dataset: Dataset | None = build_split(dataset_config, cfg.split, progress=cfg.progress)
+    if dataset is None:
+        raise ValueError(f"dataset {dataset_config.get('name')!r} has no {cfg.split!r} split")
+    loss = build_loss_from_config(stored["loss"]).to(device) if cfg.with_loss else None
+    if loss is not None and loss.needs_gt and not _labelled(dataset):
+        loss = None
+    loader = distributed.make_loader(
+        dataset,
+        batch_size=cfg.batch_size,
+        num_points=cfg.trainer.num_points,
+        shuffle=False,
+        num_workers=cfg.num_workers,
+    )
+    evaluation = evaluate_model(
+        model,
+        loader,
+        device=device,
+        loss=loss,
+        max_batches=cfg.max_batches,
+        keep=cfg.num_figures,
+        progress=cfg.progress,
+    )
+    name = f"{stored['model']['name']} ({Path(state['path']).name})"
+    output_dir = Path(cfg.output_dir)
+    content = write_evaluation(
+        evaluation,
+        output_dir,
+        name=name,
+        alphas=list(cfg.alphas),
+        info={
+            "checkpoint": state["path"],
+            "dataset": dataset_config.get("name"),
+            "split": cfg.split,
+            "epoch": state["progress"]["epoch"],
+        },
+    )
+    print(report(name, evaluation, list(cfg.alphas)))
+    log.info("evaluation written to %s", output_dir)
+    return content
+
+
+def _labelled(dataset: Dataset) -> bool:
+    """Whether the first pair of ``dataset`` has a ground-truth transform."""
+    return len(dataset) > 0 and dataset[0].gt_transform is not None
+
+
+@hydra.main(version_base="1.3", config_path="../configs", config_name="evaluate")
+def main(cfg: DictConfig) -> None:
+    evaluate(cfg)
+
+
+if __name__ == "__main__":
+    main()

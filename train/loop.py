@@ -1,0 +1,732 @@
+"""The training loop: ``train(cfg) -> dict`` (what ``python -m train`` runs, and tests call).
+
+One run::
+
+    seed -> model, loss, optimizer (registries, ``name:`` keys) -> for each curriculum stage:
+        training split (subset / variant of the stage), learning rate, scheduler
+        for each epoch: steps (AMP, gradient clipping, non-finite guard), validation every
+        ``trainer.val_every`` epochs, ``last.pt`` (+ ``best.pt`` when the monitored metric
+        improves), TensorBoard
+    -> evaluation of ``best.pt`` on ``evaluate_split`` (printed table, ``evaluation/``)
+    -> ``metrics.json`` in the run folder
+
+Checkpoints are written at the end of every epoch, atomically, so an interrupted run (Ctrl-C,
+``kill``) loses at most the epoch in progress; ``resume=true`` continues exactly: same data
+order (a function of seed and epoch), optimizer, scheduler, curriculum stage and generators.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import os
+import random
+import time
+import warnings
+from collections import defaultdict
+from collections.abc import Iterable, Mapping
+from dataclasses import dataclass, fields, replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from hydra.core.hydra_config import HydraConfig
+from omegaconf import DictConfig, OmegaConf
+from torch import nn
+from tqdm.auto import tqdm
+
+from linereg.registry import Registry
+from linereg.structures import LossOutput, PairBatch, RegistrationOutput
+from models import build_model
+from train import distributed
+from train.checkpoint import (
+    BEST,
+    CHECKPOINT_DIR,
+    LAST,
+    build_loss_from_config,
+    find_checkpoint,
+    generator_states,
+    load_checkpoint,
+    restore_generator_states,
+    restore_rng_state,
+    rng_state,
+    save_checkpoint,
+)
+from train.curriculum import Curriculum, Stage, build_split, plain
+from train.evaluate import Evaluation, evaluate_model, report, write_evaluation
+from train.figures import registration_figure
+from train.logging import RunLogger
+
+log = logging.getLogger(__name__)
+
+OPTIMIZERS: Registry[torch.optim.Optimizer] = Registry("optimizer")
+OPTIMIZERS.register("adam")(torch.optim.Adam)
+OPTIMIZERS.register("adamw")(torch.optim.AdamW)
+OPTIMIZERS.register("sgd")(torch.optim.SGD)
+
+SCHEDULERS: Registry[Any] = Registry("scheduler")
+
+
+@SCHEDULERS.register("constant")
+def _constant(optimizer: torch.optim.Optimizer, *, epochs: int) -> None:
+    """No schedule: the stage's learning rate throughout."""
+    return None
+
+
+@SCHEDULERS.register("cosine")
+def _cosine(optimizer: torch.optim.Optimizer, *, epochs: int, min_lr_scale: float = 0.01):
+    """Cosine decay over the stage's epochs down to ``min_lr_scale`` x its learning rate."""
+    lr = optimizer.param_groups[0]["lr"]
+    return torch.optim.lr_scheduler.CosineAnnealingLR(optimizer, T_max=max(epochs, 1), eta_min=lr * min_lr_scale)
+
+
+@SCHEDULERS.register("step")
+def _step(optimizer: torch.optim.Optimizer, *, epochs: int, step_size: int = 10, gamma: float = 0.5):
+    """Multiply the learning rate by ``gamma`` every ``step_size`` epochs of the stage."""
+    return torch.optim.lr_scheduler.StepLR(optimizer, step_size=step_size, gamma=gamma)
+
+
+# Keys a resumed run takes from the current command line instead of the checkpoint.
+RESUME_OVERRIDABLE = ("trainer.device", "trainer.threads", "trainer.num_workers", "trainer.progress", "resume")
+
+
+def _from_registry(registry: Registry, config: Mapping[str, Any], kind: str, *args: Any, **extra: Any) -> Any:
+    """Build ``registry[config.name](*args, **rest of config, **extra)`` with a clear error."""
+    config = dict(plain(config))
+    if "name" not in config:
+        raise ValueError(f"the {kind} config needs a 'name', one of {', '.join(registry.names())}")
+    name = config.pop("name")
+    try:
+        return registry.get(name)(*args, **config, **extra)
+    except TypeError as error:
+        raise TypeError(f"{kind} {name!r}: {error} (config keys: {sorted(config)})") from error
+
+
+def build_optimizer(parameters: Iterable[nn.Parameter], config: Mapping[str, Any]) -> torch.optim.Optimizer:
+    """An optimizer from ``{name: adam|adamw|sgd, lr: ..., **torch arguments}``."""
+    return _from_registry(OPTIMIZERS, config, "optimizer", parameters)
+
+
+def build_scheduler(optimizer: torch.optim.Optimizer, config: Mapping[str, Any], epochs: int):
+    """A per-epoch scheduler for one curriculum stage (``None`` for ``constant``)."""
+    return _from_registry(SCHEDULERS, config, "scheduler", optimizer, epochs=epochs)
+
+
+@dataclass(frozen=True)
+class TrainerSettings:
+    """The ``trainer`` section of the config (see ``configs/train.yaml`` for each key)."""
+
+    device: str = "auto"
+    threads: int | None = None
+    amp: str | bool = False
+    batch_size: int = 8
+    eval_batch_size: int = 16
+    num_points: int | None = 512
+    num_workers: int = 0
+    grad_clip_norm: float | None = 10.0
+    val_every: int = 1
+    val_before_training: bool = True
+    monitor: str = "val/err_r_deg_mean"
+    monitor_mode: str = "min"
+    max_steps_per_epoch: int | None = None
+    max_eval_batches: int | None = None
+    log_every: int = 10
+    progress: bool = True
+    max_bad_steps: int = 20
+    detect_anomaly: bool = False
+    ddp_find_unused_parameters: bool = False
+    alphas: tuple[float, ...] = (0.01, 0.02, 0.05, 0.1)
+
+    @classmethod
+    def from_config(cls, config: Mapping[str, Any]) -> TrainerSettings:
+        """Validated settings; unknown keys raise ``ValueError`` listing the accepted ones."""
+        config = dict(plain(config))
+        accepted = {f.name for f in fields(cls)}
+        unknown = sorted(set(config) - accepted)
+        if unknown:
+            raise ValueError(f"unknown trainer key(s) {unknown}; accepted: {sorted(accepted)}")
+        if "alphas" in config:
+            config["alphas"] = tuple(float(a) for a in config["alphas"])
+        settings = cls(**config)
+        if settings.monitor_mode not in ("min", "max"):
+            raise ValueError(f"trainer.monitor_mode must be 'min' or 'max', got {settings.monitor_mode!r}")
+        for name in ("batch_size", "eval_batch_size", "val_every", "log_every", "max_bad_steps"):
+            if getattr(settings, name) < 1:
+                raise ValueError(f"trainer.{name} must be >= 1, got {getattr(settings, name)}")
+        return settings
+
+
+def seed_everything(seed: int, deterministic: bool = False) -> None:
+    """Seed python, numpy and torch; optionally ask torch for deterministic kernels."""
+    random.seed(seed)
+    np.random.seed(seed)  # noqa: NPY002 (seeds libraries that draw from the global generator)
+    torch.manual_seed(seed)
+    if deterministic:
+        os.environ.setdefault("CUBLAS_WORKSPACE_CONFIG", ":4096:8")
+        torch.use_deterministic_algorithms(True, warn_only=True)
+        torch.backends.cudnn.benchmark = False
+        torch.backends.cudnn.deterministic = True
+
+
+def _select_sample(value: Any, index: int, batch_size: int) -> Any:
+    """Sample ``index`` of batched values (tensors with a leading batch axis, lists, dicts)."""
+    if isinstance(value, torch.Tensor):
+        return value[index : index + 1] if value.ndim and value.shape[0] == batch_size else value
+    if isinstance(value, list | tuple):
+        if len(value) == batch_size and not any(isinstance(v, torch.Tensor) for v in value):
+            return type(value)([value[index]])
+        return type(value)(_select_sample(v, index, batch_size) for v in value)
+    if isinstance(value, dict):
+        return {key: _select_sample(v, index, batch_size) for key, v in value.items()}
+    return value
+
+
+def _flatten(config: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:
+    """``{"a.b": value}`` for a nested mapping."""
+    flat = {}
+    for key, value in config.items():
+        if isinstance(value, Mapping):
+            flat.update(_flatten(value, f"{prefix}{key}."))
+        else:
+            flat[f"{prefix}{key}"] = value
+    return flat
+
+
+class Trainer:
+    """Trains one model through its curriculum (use :func:`train`).
+
+    Args:
+        config: the resolved run config (plain dict).
+        run_dir: the run folder (checkpoints, logs, evaluation).
+        ctx: distributed context of this process.
+        loss: the loss (built by :func:`train` from the unresolved config, to check handles).
+    """
+
+    def __init__(self, config: dict[str, Any], run_dir: Path, ctx: distributed.DistContext, loss: nn.Module) -> None:
+        self.config = config
+        self.run_dir = run_dir
+        self.ctx = ctx
+        self.settings = TrainerSettings.from_config(config["trainer"])
+        self.device = ctx.device
+        self.amp = distributed.amp_dtype(self.settings.amp, self.device)
+        self.seed = int(config["seed"])
+        self.model = build_model(config["model"]).to(self.device)
+        self.loss = loss.to(self.device)
+        self.curriculum = Curriculum.from_config(config["curriculum"])
+        self.optimizer = build_optimizer(self.model.parameters(), config["optimizer"])
+        self.base_lr = float(config["optimizer"]["lr"])
+        self.scheduler = None
+        self.scaler = torch.amp.GradScaler(self.device.type, enabled=self.amp == torch.float16)
+        self.ddp_model = distributed.wrap(
+            self.model, ctx, find_unused_parameters=self.settings.ddp_find_unused_parameters
+        )
+        self.epoch = 0
+        self.global_step = 0
+        self.stage_index: int | None = None
+        self.best: dict[str, Any] = {"metric": self.settings.monitor, "value": None, "epoch": None}
+        self.bad_steps = 0
+        self.monitor = self.settings.monitor
+        self.initial_metrics: dict[str, float] = {}
+        self.train_data = None
+        self.val_data = None
+        self.logger: RunLogger | None = None
+
+    # ----------------------------------------------------------------------------- state
+    def state_dict(self, metrics: Mapping[str, float]) -> dict[str, Any]:
+        """Everything needed to continue exactly (see :mod:`train.checkpoint`)."""
+        stage = self.curriculum.stages[self.stage_index]
+        return {
+            "config": self.config,
+            "model": distributed.unwrap(self.model).state_dict(),
+            "optimizer": self.optimizer.state_dict(),
+            "scheduler": None if self.scheduler is None else self.scheduler.state_dict(),
+            "scaler": self.scaler.state_dict(),
+            "progress": {
+                "epoch": self.epoch,
+                "global_step": self.global_step,
+                "stage": self.stage_index,
+                "stage_name": stage.name,
+            },
+            "best": dict(self.best),
+            "rng": rng_state(),
+            "generators": generator_states(self.loss),
+            "metrics": dict(metrics),
+        }
+
+    def load_state_dict(self, state: Mapping[str, Any]) -> None:
+        """Restore a checkpoint written by :meth:`state_dict` (the run continues after it)."""
+        progress = state["progress"]
+        self.model.load_state_dict(state["model"])
+        self.optimizer.load_state_dict(state["optimizer"])
+        self.scaler.load_state_dict(state["scaler"])
+        self.epoch = int(progress["epoch"])
+        self.global_step = int(progress["global_step"])
+        self.best = dict(state["best"])
+        self.monitor = self.best.get("metric") or self.monitor
+        self.stage_index = int(progress["stage"])
+        stage = self.curriculum.stages[self.stage_index]
+        if stage.name != progress["stage_name"]:
+            raise ValueError(
+                f"checkpoint stage {progress['stage_name']!r} is not stage {progress['stage']} of the curriculum "
+                f"({stage.name!r})"
+            )
+        if self.epoch < self.curriculum.total_epochs:
+            index, _ = self.curriculum.locate(self.epoch)
+            self._enter_stage(index, resumed=True)
+            if index == progress["stage"]:
+                # The stage goes on: its learning rate and schedule as they were saved.
+                for group, saved in zip(self.optimizer.param_groups, state["optimizer"]["param_groups"], strict=True):
+                    group["lr"], group["initial_lr"] = saved["lr"], saved.get("initial_lr", saved["lr"])
+                if self.scheduler is not None and state["scheduler"] is not None:
+                    self.scheduler.load_state_dict(state["scheduler"])
+        restore_rng_state(state["rng"])
+        restore_generator_states(self.loss, state["generators"])
+
+    # ----------------------------------------------------------------------------- stages
+    def _enter_stage(self, index: int, *, resumed: bool = False) -> None:
+        """Switch to curriculum stage ``index``: its data, learning rate and scheduler."""
+        stage: Stage = self.curriculum.stages[index]
+        self.stage_index = index
+        lr = stage.learning_rate(self.base_lr)
+        for group in self.optimizer.param_groups:
+            group["lr"] = lr
+            group["initial_lr"] = lr
+        self.scheduler = build_scheduler(self.optimizer, self.config["scheduler"], stage.epochs)
+        self.train_data = build_split(
+            self.config["dataset"],
+            "train",
+            variant=stage.variant,
+            subset=stage.subset,
+            seed=self.seed,
+            progress=self.settings.progress and self.ctx.is_main,
+        )
+        if self.train_data is None or len(self.train_data) == 0:
+            raise ValueError(f"curriculum stage {stage.name!r}: the training split is empty")
+        verb = "resuming" if resumed else "entering"
+        message = (
+            f"{verb} curriculum stage {index + 1}/{len(self.curriculum.stages)} {stage.describe(self.base_lr)}: "
+            f"{len(self.train_data)} training pairs"
+        )
+        log.info(message)
+        if self.logger is not None:
+            self.logger.text("curriculum", message, self.global_step)
+            self.logger.scalars(
+                {"curriculum/stage": index, "curriculum/train_pairs": len(self.train_data)}, self.global_step
+            )
+
+    # ----------------------------------------------------------------------------- steps
+    def _forward(self, batch: PairBatch) -> tuple[RegistrationOutput, LossOutput]:
+        """Model forward (autocast when AMP is on) and loss (float32)."""
+        with distributed.autocast(self.device, self.amp):
+            output = self.ddp_model(batch)
+        output = distributed.float32_output(output)
+        return output, self.loss(output, batch)
+
+    def _report_bad_batch(self, batch: PairBatch, output: RegistrationOutput, loss_output: LossOutput) -> str:
+        """Find which samples give a non-finite loss and describe them."""
+        culprits = []
+        with torch.no_grad():
+            for b in range(batch.batch_size):
+                sample_batch = PairBatch(
+                    **{f.name: _select_sample(getattr(batch, f.name), b, batch.batch_size) for f in fields(PairBatch)}
+                )
+                sample_output = replace(
+                    output,
+                    transforms=[T[b : b + 1] for T in output.transforms],
+                    extras=_select_sample(output.extras, b, batch.batch_size),
+                )
+                finite_transform = all(bool(torch.isfinite(T).all()) for T in sample_output.transforms)
+                try:
+                    value = float(self.loss(sample_output, sample_batch).total)
+                except (RuntimeError, ValueError) as error:
+                    value = float("nan")
+                    log.debug("loss of sample %d failed: %s", b, error)
+                if not (finite_transform and math.isfinite(value)):
+                    meta = batch.meta[b] if batch.meta else {}
+                    culprits.append(
+                        f"sample {b} (meta {meta}): transform {'finite' if finite_transform else 'NON-FINITE'}, "
+                        f"loss {value}"
+                    )
+        terms = ", ".join(f"{name}={float(value.detach()):.4g}" for name, value in loss_output.terms.items())
+        found = "; ".join(culprits) if culprits else "no single sample reproduces it"
+        where = f"epoch {self.epoch} step {self.global_step}"
+        return f"non-finite loss {float(loss_output.total.detach())} ({terms}) at {where}: {found}"
+
+    def _train_step(self, batch: PairBatch) -> dict[str, float] | None:
+        """One optimizer step; ``None`` when skipped (non-finite loss or gradients)."""
+        batch = batch.to(self.device)
+        output, loss_output = self._forward(batch)
+        finite = bool(torch.isfinite(loss_output.total))
+        if not distributed.all_ranks_true(finite, self.ctx):
+            message = (
+                self._report_bad_batch(batch, output, loss_output) if not finite else "non-finite loss on another rank"
+            )
+            return self._skip_step(message)
+        self.optimizer.zero_grad(set_to_none=True)
+        self.scaler.scale(loss_output.total).backward()
+        self.scaler.unscale_(self.optimizer)
+        max_norm = self.settings.grad_clip_norm if self.settings.grad_clip_norm is not None else math.inf
+        grad_norm = float(torch.nn.utils.clip_grad_norm_(self.model.parameters(), max_norm))
+        if not math.isfinite(grad_norm) and self.amp != torch.float16:
+            self.optimizer.zero_grad(set_to_none=True)
+            return self._skip_step(f"non-finite gradient norm at epoch {self.epoch} step {self.global_step}")
+        self.scaler.step(self.optimizer)
+        self.scaler.update()
+        self.bad_steps = 0
+        self.global_step += 1
+        values = {"loss": float(loss_output.total.detach())}
+        values.update({f"loss/{name}": float(value.detach()) for name, value in loss_output.terms.items()})
+        values.update({f"stats/{name}": float(value) for name, value in loss_output.stats.items()})
+        values["grad_norm"] = grad_norm
+        values["lr"] = self.optimizer.param_groups[0]["lr"]
+        return values
+
+    def _skip_step(self, message: str) -> None:
+        """Skip this step, warn, and give up after ``max_bad_steps`` in a row."""
+        self.optimizer.zero_grad(set_to_none=True)
+        self.bad_steps += 1
+        warnings.warn(f"step skipped: {message}", RuntimeWarning, stacklevel=2)
+        if self.logger is not None:
+            self.logger.scalars({"train/skipped_steps": self.bad_steps}, self.global_step)
+        if self.bad_steps >= self.settings.max_bad_steps:
+            raise FloatingPointError(
+                f"{self.bad_steps} consecutive steps with non-finite values; last: {message}. Lower optimizer.lr, "
+                "check the data (trainer.detect_anomaly=true helps), or resume from an earlier checkpoint"
+            )
+        return None
+
+    def _train_epoch(self) -> dict[str, float]:
+        """One epoch over this rank's shard of the stage's training data."""
+        stage = self.curriculum.stages[self.stage_index]
+        loader = distributed.make_loader(
+            self.train_data,
+            batch_size=self.settings.batch_size,
+            num_points=self.settings.num_points,
+            shuffle=True,
+            seed=self.seed,
+            epoch=self.epoch,
+            num_workers=self.settings.num_workers,
+            ctx=self.ctx,
+        )
+        self.ddp_model.train()
+        totals: dict[str, float] = defaultdict(float)
+        steps = 0
+        total_steps = len(loader)
+        if self.settings.max_steps_per_epoch is not None:
+            total_steps = min(total_steps, self.settings.max_steps_per_epoch)
+        bar = tqdm(
+            total=total_steps,
+            desc=f"epoch {self.epoch + 1}/{self.curriculum.total_epochs} [{stage.name}]",
+            disable=not (self.settings.progress and self.ctx.is_main),
+            leave=False,
+        )
+        began = time.perf_counter()
+        with bar, torch.autograd.set_detect_anomaly(self.settings.detect_anomaly):
+            for batch in loader:
+                if steps >= total_steps:
+                    break
+                values = self._train_step(batch)
+                steps += 1
+                bar.update(1)
+                if values is None:
+                    continue
+                for name, value in values.items():
+                    totals[name] += value
+                totals["_count"] += 1
+                bar.set_postfix(loss=f"{values['loss']:.4g}")
+                if self.logger is not None and self.global_step % self.settings.log_every == 0:
+                    self.logger.scalars(values, self.global_step, prefix="train/")
+        count = totals.pop("_count", 0)
+        means = {name: value / count for name, value in totals.items()} if count else {}
+        means["epoch_seconds"] = time.perf_counter() - began
+        return means
+
+    # ----------------------------------------------------------------------------- evaluation
+    def _evaluate(self, dataset, *, keep: int = 0, description: str = "validate") -> Evaluation:
+        """Evaluate the current model on ``dataset`` (this process only)."""
+        loader = distributed.make_loader(
+            dataset,
+            batch_size=self.settings.eval_batch_size,
+            num_points=self.settings.num_points,
+            shuffle=False,
+            num_workers=self.settings.num_workers,
+        )
+        return evaluate_model(
+            distributed.unwrap(self.model),
+            loader,
+            device=self.device,
+            loss=self.loss,
+            amp=self.amp,
+            max_batches=self.settings.max_eval_batches,
+            keep=keep,
+            progress=self.settings.progress,
+            description=description,
+        )
+
+    def _validate(self) -> dict[str, float]:
+        """Validation metrics (``val/...``) on rank 0; ``{}`` elsewhere or without a val split."""
+        if self.val_data is None or not self.ctx.is_main:
+            return {}
+        logger_config = self.config["logger"]
+        keep = logger_config.get("num_figures", 0) if logger_config.get("tensorboard") else 0
+        evaluation = self._evaluate(self.val_data, keep=keep)
+        metrics = {f"val/{k}": v for k, v in evaluation.metrics(self.settings.alphas).items()}
+        if self.logger is not None:
+            self.logger.scalars(metrics, self.global_step)
+            for i, pair in enumerate(evaluation.kept):
+                figure = registration_figure(pair.src, pair.tgt, pair.transform, title=f"epoch {self.epoch + 1}")
+                self.logger.figure(f"val/registration_{i}", figure, self.global_step)
+        return metrics
+
+    def _monitored(self, metrics: Mapping[str, float]) -> float | None:
+        """The monitored value in ``metrics`` (falls back to ``val/loss`` on unlabelled data)."""
+        if not metrics:
+            return None
+        if self.monitor not in metrics:
+            if "val/loss" in metrics and "val/err_r_deg_mean" not in metrics:
+                warnings.warn(
+                    f"trainer.monitor={self.monitor!r} is unavailable (the validation data has no ground truth); "
+                    "selecting the best checkpoint by val/loss",
+                    stacklevel=2,
+                )
+                self.monitor = self.best["metric"] = "val/loss"
+            else:
+                raise KeyError(
+                    f"trainer.monitor={self.monitor!r} is not a validation metric; available: {sorted(metrics)}"
+                )
+        return float(metrics[self.monitor])
+
+    def _improved(self, value: float | None) -> bool:
+        """Whether ``value`` beats the best so far."""
+        if value is None or not math.isfinite(value):
+            return False
+        best = self.best["value"]
+        if best is None:
+            return True
+        return value < best if self.settings.monitor_mode == "min" else value > best
+
+    # ----------------------------------------------------------------------------- run
+    def fit(self) -> dict[str, Any]:
+        """Run the remaining epochs of the curriculum, then the final evaluation."""
+        self.logger = RunLogger(
+            self.run_dir,
+            tensorboard=bool(self.config["logger"].get("tensorboard", True)),
+            enabled=self.ctx.is_main,
+            purge_step=self.global_step if self.global_step else None,
+        )
+        checkpoints = self.run_dir / CHECKPOINT_DIR
+        try:
+            self._run_epochs(checkpoints)
+            return self._finish(checkpoints)
+        except KeyboardInterrupt:
+            log.warning("interrupted; continue with: python -m train resume=%s", self.run_dir)
+            raise
+        finally:
+            self.logger.close()
+
+    def _run_epochs(self, checkpoints: Path) -> None:
+        """Train, validate and checkpoint every remaining epoch."""
+        self.val_data = build_split(self.config["dataset"], "val", progress=self.settings.progress and self.ctx.is_main)
+        if self.stage_index is None:
+            if self.settings.val_before_training:
+                initial = self._validate()
+                self.initial_metrics = {key.replace("val/", "val_initial/", 1): v for key, v in initial.items()}
+                if self.initial_metrics:
+                    log.info("before training: %s %.4g", self.monitor, initial.get(self.monitor, math.nan))
+            self._enter_stage(0)
+        total = self.curriculum.total_epochs
+        while self.epoch < total:
+            index, _ = self.curriculum.locate(self.epoch)
+            if index != self.stage_index:
+                self._enter_stage(index)
+            train_means = self._train_epoch()
+            if self.scheduler is not None:
+                self.scheduler.step()
+            metrics: dict[str, float] = {}
+            if (self.epoch + 1) % self.settings.val_every == 0 or self.epoch + 1 == total:
+                metrics = self._validate()
+            self.epoch += 1
+            self.logger.scalars({f"epoch/{k}": v for k, v in train_means.items()}, self.global_step)
+            self.logger.scalars({"epoch": self.epoch}, self.global_step)
+            monitored = self._monitored(metrics)
+            improved = self._improved(monitored)
+            if improved:
+                self.best.update(value=monitored, epoch=self.epoch)
+            if self.ctx.is_main:
+                state = self.state_dict(metrics)
+                save_checkpoint(state, checkpoints / LAST)
+                if improved or self.val_data is None:
+                    save_checkpoint(state, checkpoints / BEST)
+                log.info(
+                    "epoch %d/%d: train loss %.4g%s%s (%.0f s)",
+                    self.epoch,
+                    total,
+                    train_means.get("loss", math.nan),
+                    "" if monitored is None else f", {self.monitor} {monitored:.4g}",
+                    " (best)" if improved else "",
+                    train_means["epoch_seconds"],
+                )
+            self.logger.flush()
+            distributed.barrier(self.ctx)
+
+    def _finish(self, checkpoints: Path) -> dict[str, Any]:
+        """Evaluate the best checkpoint on the evaluation split; write ``metrics.json``."""
+        best_file = checkpoints / BEST if (checkpoints / BEST).is_file() else checkpoints / LAST
+        results: dict[str, Any] = {
+            "metrics": {},
+            "best_checkpoint": str(best_file),
+            "last_checkpoint": str(checkpoints / LAST),
+            "output_dir": str(self.run_dir),
+            "model": distributed.unwrap(self.model),
+        }
+        if not self.ctx.is_main:
+            distributed.barrier(self.ctx)
+            return results
+        best_state = load_checkpoint(best_file, map_location=self.device)
+        metrics = {k: v for k, v in best_state["metrics"].items() if k.startswith("val/")}
+        split = self.config.get("evaluate_split")
+        dataset = build_split(self.config["dataset"], split, progress=self.settings.progress) if split else None
+        if dataset is not None:
+            model = distributed.unwrap(self.model)
+            model.load_state_dict(best_state["model"])
+            evaluation = self._evaluate(
+                dataset, keep=int(self.config["logger"].get("num_figures", 0)), description=split
+            )
+            name = f"{self.config['model']['name']} (best.pt, epoch {best_state['progress']['epoch']})"
+            write_evaluation(
+                evaluation,
+                self.run_dir / "evaluation",
+                name=name,
+                alphas=self.settings.alphas,
+                info={"checkpoint": str(best_file), "dataset": self.config["dataset"].get("name"), "split": split},
+            )
+            metrics.update({f"{split}/{k}": v for k, v in evaluation.metrics(self.settings.alphas).items()})
+            if evaluation.labelled:
+                identity = evaluation.metrics(self.settings.alphas, identity=True)
+                metrics.update({f"{split}/identity/{k}": v for k, v in identity.items()})
+            self.logger.scalars({k: v for k, v in metrics.items() if k.startswith(f"{split}/")}, self.global_step)
+            print(f"\nEvaluation of {best_file} on the {split!r} split of {self.config['dataset'].get('name')!r}:\n")
+            print(report(name, evaluation, self.settings.alphas))
+        metrics.update(self.initial_metrics)
+        metrics["best_epoch"] = self.best["epoch"]
+        optimized = self.config.get("optimized_metric")
+        content = {"metrics": metrics, "optimized_metric": optimized, "best": self.best, "run_dir": str(self.run_dir)}
+        (self.run_dir / "metrics.json").write_text(_json(content))
+        log.info("run folder: %s", self.run_dir)
+        distributed.barrier(self.ctx)
+        results["metrics"] = metrics
+        return results
+
+
+def _json(value: Any) -> str:
+    """Pretty JSON (non-finite floats written as strings)."""
+
+    def clean(item: Any) -> Any:
+        if isinstance(item, float) and not math.isfinite(item):
+            return str(item)
+        if isinstance(item, Mapping):
+            return {k: clean(v) for k, v in item.items()}
+        if isinstance(item, list | tuple):
+            return [clean(v) for v in item]
+        return item
+
+    return json.dumps(clean(value), indent=2)
+
+
+def _run_overrides(run_dir: Path) -> list[str] | None:
+    """The command-line overrides Hydra recorded for a run folder, without ``resume``."""
+    recorded = run_dir / ".hydra" / "overrides.yaml"
+    if not recorded.is_file():
+        return None
+    return sorted(str(item) for item in OmegaConf.load(recorded) if not str(item).startswith("resume="))
+
+
+def _resume_checkpoint(resume: Any, output_dir: Path, overrides: list[str] | None = None) -> Path | None:
+    """The checkpoint a ``resume`` setting names.
+
+    ``true``: this run folder's ``last.pt``, else that of the newest sibling run folder started
+    with the same command-line ``overrides`` (when they are known; ``resume=...`` aside). A path:
+    that checkpoint file or run folder.
+    """
+    if resume in (None, False):
+        return None
+    if resume is not True:
+        return find_checkpoint(resume, prefer=(LAST, BEST))
+    own = output_dir / CHECKPOINT_DIR / LAST
+    if own.is_file():
+        return own
+    wanted = None if overrides is None else sorted(o for o in overrides if not o.startswith("resume="))
+    siblings = [
+        path
+        for path in output_dir.parent.glob(f"*/{CHECKPOINT_DIR}/{LAST}")
+        if wanted is None or _run_overrides(path.parent.parent) == wanted
+    ]
+    if not siblings:
+        raise FileNotFoundError(
+            f"resume=true: no {CHECKPOINT_DIR}/{LAST} in {output_dir} or in a sibling run started with the same "
+            "overrides; pass the run folder instead: resume=<path>"
+        )
+    return max(siblings, key=lambda path: path.stat().st_mtime)
+
+
+def _config_for_resume(current: dict[str, Any], stored: dict[str, Any]) -> dict[str, Any]:
+    """The checkpoint's config, with the command line's :data:`RESUME_OVERRIDABLE` keys."""
+    merged = OmegaConf.create(stored)
+    current_flat, stored_flat = _flatten(current), _flatten(stored)
+    for key in RESUME_OVERRIDABLE:
+        if key in current_flat:
+            OmegaConf.update(merged, key, current_flat[key], force_add=True)
+    ignored = sorted(
+        key
+        for key in set(current_flat) | set(stored_flat)
+        if key not in RESUME_OVERRIDABLE
+        and not key.startswith("paths.")
+        and current_flat.get(key) != stored_flat.get(key)
+    )
+    if ignored:
+        warnings.warn(f"resuming with the checkpoint's config; ignored differences: {ignored}", stacklevel=3)
+    return OmegaConf.to_container(merged)
+
+
+def train(cfg: DictConfig) -> dict[str, Any]:
+    """Train a model as configured (``configs/train.yaml``); the body of ``python -m train``.
+
+    Args:
+        cfg: the composed config (``paths.output_dir`` is the run folder).
+
+    Returns:
+        ``{"metrics": {...}, "best_checkpoint", "last_checkpoint", "output_dir", "model"}``;
+        metrics hold the best checkpoint's validation metrics (``val/...``), its evaluation on
+        ``evaluate_split`` (``test/...``, ``test/identity/...``) and ``best_epoch``.
+    """
+    ctx = distributed.setup(cfg.trainer.device)
+    try:
+        config = OmegaConf.to_container(cfg, resolve=True)
+        output_dir = Path(config["paths"]["output_dir"])
+        overrides = list(HydraConfig.get().overrides.task) if HydraConfig.initialized() else None
+        resume_file = distributed.broadcast_object(
+            _resume_checkpoint(config.get("resume"), output_dir, overrides) if ctx.is_main else None, ctx
+        )
+        state = None
+        if resume_file is not None:
+            state = load_checkpoint(resume_file, map_location=ctx.device)
+            config = _config_for_resume(config, state["config"])
+            output_dir = Path(resume_file).parent.parent
+            log.info("resuming %s at epoch %d", resume_file, state["progress"]["epoch"])
+        distributed.set_threads(config["trainer"].get("threads"))
+        seed_everything(int(config["seed"]), bool(config.get("deterministic", False)))
+        loss = build_loss_from_config(config["loss"] if state is not None else cfg.loss)
+        trainer = Trainer(config, output_dir, ctx, loss)
+        if state is not None:
+            trainer.load_state_dict(state)
+        elif config.get("init_from"):
+            init = load_checkpoint(config["init_from"], map_location=ctx.device)
+            trainer.model.load_state_dict(init["model"])
+            log.info("initialised the model from %s", init["path"])
+        if ctx.is_main:
+            log.info("run folder: %s", output_dir)
+        return trainer.fit()
+    finally:
+        distributed.teardown(ctx)

@@ -74,17 +74,14 @@ def resolve_device(spec: str, local_rank: int = 0) -> torch.device:
 
 
 def set_threads(threads: int | None) -> None:
-    """Use ``threads`` CPU threads in torch and in the numba kernels of the losses (``None``:
-    leave the libraries' defaults). One thread per process avoids the heavy slowdown of
-    OpenMP-style thread pools on an oversubscribed CPU."""
+    """Use ``threads`` CPU threads in torch (``None``: torch's default, all cores). One thread
+    per process avoids the heavy slowdown of OpenMP thread pools on an oversubscribed CPU. (The
+    loss's compiled kernels are serial and need no setting.)"""
     if threads is None:
         return
     if threads < 1:
         raise ValueError(f"trainer.threads must be >= 1 or null, got {threads}")
     torch.set_num_threads(threads)
-    import numba
-
-    numba.set_num_threads(min(threads, numba.config.NUMBA_NUM_THREADS))
 
 
 def _export_slurm_environment() -> None:

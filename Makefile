@@ -19,7 +19,7 @@ $(STAMP): pyproject.toml scripts/ensure_system_deps.sh | $(PY)
 	bash scripts/ensure_system_deps.sh
 	$(PY) -m pip install --quiet --upgrade pip
 	$(PY) -m pip install --quiet torch==2.13.0
-	$(PY) -m pip install --quiet -e '.[dev,baselines]'
+	$(PY) -m pip install --quiet -e '.[dev,baselines,cluster]'
 	touch $(STAMP)
 
 setup: $(STAMP)  ## create .venv and install everything (idempotent)
@@ -33,7 +33,7 @@ test-full: setup  ## run every test, the slow ones included
 lint: setup  ## ruff
 	$(VENV)/bin/ruff check .
 
-train: setup  ## train the embedded default: RPM-Net + line loss on procedural shapes (~15 min, CPU)
+train: setup  ## train the embedded default: RPM-Net + line loss on procedural shapes (~6 min, 2-core CPU)
 	$(PY) -m train
 
 train-full: setup  ## the paper's RPM-Net + line-loss configuration (python -m train experiment=rpm_ours)

@@ -40,9 +40,7 @@ def build_model(config: Mapping[str, Any]) -> nn.Module:
     accepted = inspect.signature(builder).parameters
     unknown = sorted(set(options) - set(accepted))
     if unknown:
-        raise TypeError(
-            f"model {name!r} got unknown argument(s) {unknown}; it accepts {sorted(accepted)}"
-        )
+        raise TypeError(f"model {name!r} got unknown argument(s) {unknown}; it accepts {sorted(accepted)}")
     return builder(**options)
 
 

@@ -54,14 +54,10 @@ class DGCNNEmbedding(nn.Module):
         in_channels = 6
         self.edge_blocks = nn.ModuleList()
         for width, group in zip(DGCNN_EDGE_WIDTHS, groups[:-1], strict=True):
-            block = shared_mlp(
-                in_channels, [width], norm=norm, groups=[group], layer="conv2d", bias=False
-            )
+            block = shared_mlp(in_channels, [width], norm=norm, groups=[group], layer="conv2d", bias=False)
             self.edge_blocks.append(block)
             in_channels = width
-        self.fuse = shared_mlp(
-            sum(DGCNN_EDGE_WIDTHS), [emb_dims], norm=norm, groups=groups[-1:], bias=False
-        )
+        self.fuse = shared_mlp(sum(DGCNN_EDGE_WIDTHS), [emb_dims], norm=norm, groups=groups[-1:], bias=False)
 
     def forward(self, xyz: torch.Tensor) -> torch.Tensor:
         """Map points ``(B, N, 3)`` to features ``(B, emb_dims, N)``."""
@@ -96,9 +92,7 @@ class _FeedForward(nn.Sequential):
     """Position-wise feed-forward layer ``d -> ff -> d``."""
 
     def __init__(self, dims: int, ff_dims: int, dropout: float) -> None:
-        super().__init__(
-            nn.Linear(dims, ff_dims), nn.ReLU(), nn.Dropout(dropout), nn.Linear(ff_dims, dims)
-        )
+        super().__init__(nn.Linear(dims, ff_dims), nn.ReLU(), nn.Dropout(dropout), nn.Linear(ff_dims, dims))
 
 
 class _EncoderBlock(nn.Module):
@@ -125,9 +119,7 @@ class _DecoderBlock(nn.Module):
         self.self_attention_norm = nn.LayerNorm(dims)
         self.self_attention = nn.MultiheadAttention(dims, heads, dropout=dropout, batch_first=True)
         self.cross_attention_norm = nn.LayerNorm(dims)
-        self.cross_attention = nn.MultiheadAttention(
-            dims, heads, dropout=dropout, batch_first=True
-        )
+        self.cross_attention = nn.MultiheadAttention(dims, heads, dropout=dropout, batch_first=True)
         self.feed_forward_norm = nn.LayerNorm(dims)
         self.feed_forward = _FeedForward(dims, ff_dims, dropout)
 
@@ -148,13 +140,9 @@ class PointerTransformer(nn.Module):
 
     def __init__(self, dims: int, heads: int, ff_dims: int, blocks: int, dropout: float) -> None:
         super().__init__()
-        self.encoder = nn.ModuleList(
-            _EncoderBlock(dims, heads, ff_dims, dropout) for _ in range(blocks)
-        )
+        self.encoder = nn.ModuleList(_EncoderBlock(dims, heads, ff_dims, dropout) for _ in range(blocks))
         self.encoder_norm = nn.LayerNorm(dims)
-        self.decoder = nn.ModuleList(
-            _DecoderBlock(dims, heads, ff_dims, dropout) for _ in range(blocks)
-        )
+        self.decoder = nn.ModuleList(_DecoderBlock(dims, heads, ff_dims, dropout) for _ in range(blocks))
         self.decoder_norm = nn.LayerNorm(dims)
 
     def _attend(self, x: torch.Tensor, context: torch.Tensor) -> torch.Tensor:
@@ -167,9 +155,7 @@ class PointerTransformer(nn.Module):
             x = block(x, memory)
         return self.decoder_norm(x)
 
-    def forward(
-        self, src_features: torch.Tensor, tgt_features: torch.Tensor
-    ) -> tuple[torch.Tensor, torch.Tensor]:
+    def forward(self, src_features: torch.Tensor, tgt_features: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Corrected features ``(B, N, d)`` and ``(B, M, d)``."""
         return (
             src_features + self._attend(src_features, tgt_features),
@@ -217,19 +203,13 @@ class DCP(nn.Module):
         super().__init__()
         check_norm_kind(norm)
         if emb_nn == "dgcnn":
-            self.embedding: nn.Module = DGCNNEmbedding(
-                emb_dims, k, norm, resolve_groups(DGCNN_GROUPS, groups)
-            )
+            self.embedding: nn.Module = DGCNNEmbedding(emb_dims, k, norm, resolve_groups(DGCNN_GROUPS, groups))
         elif emb_nn == "pointnet":
-            self.embedding = PointNetEmbedding(
-                emb_dims, norm, resolve_groups(POINTNET_GROUPS, groups)
-            )
+            self.embedding = PointNetEmbedding(emb_dims, norm, resolve_groups(POINTNET_GROUPS, groups))
         else:
             raise ValueError(f"emb_nn must be 'dgcnn' or 'pointnet', got {emb_nn!r}")
         if pointer == "transformer":
-            self.pointer: PointerTransformer | None = PointerTransformer(
-                emb_dims, heads, ff_dims, blocks, dropout
-            )
+            self.pointer: PointerTransformer | None = PointerTransformer(emb_dims, heads, ff_dims, blocks, dropout)
         elif pointer == "identity":
             self.pointer = None
         else:
@@ -250,19 +230,13 @@ class DCP(nn.Module):
         if self.pointer is not None:
             src_features, tgt_features = self.pointer(src_features, tgt_features)
         scores = self._scores(src_features, tgt_features)
-        T_tgt_src = soft_correspondence_transform(
-            src, tgt, scores, weighted=False, model_name="DCP"
-        )
+        T_tgt_src = soft_correspondence_transform(src, tgt, scores, weighted=False, model_name="DCP")
         if self.cycle:
             reverse_scores = self._scores(tgt_features, src_features)
-            T_src_tgt = soft_correspondence_transform(
-                tgt, src, reverse_scores, weighted=False, model_name="DCP"
-            )
+            T_src_tgt = soft_correspondence_transform(tgt, src, reverse_scores, weighted=False, model_name="DCP")
         else:
             T_src_tgt = inverse(T_tgt_src)
-        return RegistrationOutput(
-            transforms=[T_tgt_src], extras={"transform_reverse": T_src_tgt, "scores": scores}
-        )
+        return RegistrationOutput(transforms=[T_tgt_src], extras={"transform_reverse": T_src_tgt, "scores": scores})
 
 
 @MODELS.register("dcp_v1")

@@ -96,9 +96,7 @@ def _angle(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     return torch.atan2(_plane_norm(torch.linalg.cross(a, b, dim=0)), (a * b).sum(0))
 
 
-def _raw_features(
-    xyz_planes: torch.Tensor, normal_planes: torch.Tensor, neighbors: torch.Tensor
-) -> torch.Tensor:
+def _raw_features(xyz_planes: torch.Tensor, normal_planes: torch.Tensor, neighbors: torch.Tensor) -> torch.Tensor:
     """Raw features ``(B, N, K, 10)`` of every point's neighbourhood (contiguous).
 
     Per (centre, neighbour): centre ``xyz`` (3), ``d = p_neighbour - p_centre`` (3),
@@ -176,9 +174,7 @@ def _apply(values: torch.Tensor, affine: _Affine | None) -> torch.Tensor:
     return values * affine.scale.reshape(shape) + affine.shift.reshape(shape)
 
 
-def _pooled_activation(
-    highest: torch.Tensor, lowest: torch.Tensor, affine: _Affine | None
-) -> torch.Tensor:
+def _pooled_activation(highest: torch.Tensor, lowest: torch.Tensor, affine: _Affine | None) -> torch.Tensor:
     """``max_k ReLU(norm(y))`` from ``max_k y`` and ``min_k y`` of shape ``(B, N, C)``."""
     if affine is None:
         return F.relu(highest)
@@ -191,9 +187,7 @@ def _channels_last_norm(values: torch.Tensor, norm: nn.Module) -> torch.Tensor:
     if not isinstance(norm, nn.GroupNorm):
         return values
     # The permuted view is a channels-last NCHW tensor: PyTorch's fused NHWC kernel applies.
-    normalised = F.group_norm(
-        values.permute(0, 3, 1, 2), norm.num_groups, norm.weight, norm.bias, norm.eps
-    )
+    normalised = F.group_norm(values.permute(0, 3, 1, 2), norm.num_groups, norm.weight, norm.bias, norm.eps)
     return normalised.permute(0, 2, 3, 1)
 
 
@@ -241,13 +235,9 @@ class PPFFeatures(nn.Module):
         widths = (*PREPOOL_HIDDEN, 2 * feature_dim)
         inputs = (RAW_FEATURE_CHANNELS, *widths[:-1])
         self.prepool = nn.ModuleList(nn.Linear(i, o) for i, o in zip(inputs, widths, strict=True))
-        self.prepool_norms = nn.ModuleList(
-            make_norm(norm, width, groups, layer="linear") for width in widths
-        )
+        self.prepool_norms = nn.ModuleList(make_norm(norm, width, groups, layer="linear") for width in widths)
         self.postpool = nn.Sequential(
-            shared_mlp(
-                2 * feature_dim, [2 * feature_dim, feature_dim], norm=norm, groups=[groups] * 2
-            ),
+            shared_mlp(2 * feature_dim, [2 * feature_dim, feature_dim], norm=norm, groups=[groups] * 2),
             nn.Conv1d(feature_dim, feature_dim, 1),
         )
 
@@ -334,9 +324,7 @@ class ParameterNet(nn.Module):
         return beta, alpha
 
 
-def log_sinkhorn(
-    log_affinity: torch.Tensor, iterations: int, *, slack: bool = True
-) -> torch.Tensor:
+def log_sinkhorn(log_affinity: torch.Tensor, iterations: int, *, slack: bool = True) -> torch.Tensor:
     """Sinkhorn normalisation in log space, optionally with a slack row and column.
 
     With ``slack``, a zero (log) row and column are appended; each iteration normalises the
@@ -412,9 +400,7 @@ class RPMNet(nn.Module):
     ) -> None:
         super().__init__()
         if train_iters < 1 or test_iters < 1:
-            raise ValueError(
-                f"train_iters and test_iters must be >= 1, got {train_iters} and {test_iters}"
-            )
+            raise ValueError(f"train_iters and test_iters must be >= 1, got {train_iters} and {test_iters}")
         self.features = PPFFeatures(
             feature_dim,
             radius,
@@ -446,9 +432,7 @@ class RPMNet(nn.Module):
             distances = _squared_feature_distances(src_features, tgt_features)
             log_affinity = -beta[:, None, None] * (distances - alpha[:, None, None])
             perm = torch.exp(log_sinkhorn(log_affinity, self.sinkhorn_iters, slack=self.slack))
-            T_tgt_src = soft_correspondence_transform(
-                src, tgt, perm, weighted=True, model_name="RPM-Net"
-            )
+            T_tgt_src = soft_correspondence_transform(src, tgt, perm, weighted=True, model_name="RPM-Net")
             transforms.append(T_tgt_src)
             perm_matrices.append(perm)
             betas.append(beta)
@@ -459,32 +443,5 @@ class RPMNet(nn.Module):
         )
 
 
-@MODELS.register("rpmnet")
-def rpmnet(
-    *,
-    feature_dim: int = 96,
-    radius: float = 0.3,
-    num_neighbors: int = 64,
-    train_iters: int = 2,
-    test_iters: int = 5,
-    sinkhorn_iters: int = 5,
-    slack: bool = True,
-    norm: NormKind = "group",
-    groups: int | None = None,
-    chunk_bytes: int = 4 * 2**20,
-    checkpoint: bool = False,
-) -> RPMNet:
-    """RPM-Net with the original's settings (radius 0.3, 64 neighbours, 2/5 iterations)."""
-    return RPMNet(
-        feature_dim=feature_dim,
-        radius=radius,
-        num_neighbors=num_neighbors,
-        train_iters=train_iters,
-        test_iters=test_iters,
-        sinkhorn_iters=sinkhorn_iters,
-        slack=slack,
-        norm=norm,
-        groups=groups,
-        chunk_bytes=chunk_bytes,
-        checkpoint=checkpoint,
-    )
+# The paper's defaults are the constructor's: the class itself is the builder.
+MODELS.register("rpmnet")(RPMNet)

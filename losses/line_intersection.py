@@ -226,8 +226,8 @@ def intersect_lines(
     neighbors = knn(detached, detached, k, exclude_self=True)
     nbr_idx = neighbors.idx.cpu().numpy().astype(np.int64)
     nbr_dist = neighbors.dists.double().cpu().numpy()
+    coords = detached.double().cpu().numpy()
     if options.intersection == "triplet":
-        coords = detached.double().cpu().numpy()
         spacing = nbr_dist.sum(axis=1)
         for a in range(k):
             for b in range(a + 1, k):
@@ -235,7 +235,6 @@ def intersect_lines(
         radius = options.delta_factor * spacing / (k * (k + 1) / 2)
     else:
         radius = np.full(points.shape[0], options.delta_factor * nbr_dist.mean())
-    coords = detached.double().cpu().numpy()
     mode = INTERSECTIONS[options.intersection]
     kernel_neighbors = (
         np.zeros((points.shape[0], 0), dtype=np.int64) if mode == line_kernels.MODE_CANDIDATES else nbr_idx

@@ -195,6 +195,8 @@ class RgbdSequencePairs(PairDataset):
         layout: ``"auto"``, ``"7scenes"``, ``"tum"`` or ``"folder"``.
         frame_gap: frame-number difference between source and target (paper: 20).
         pair_stride: use every ``pair_stride``-th possible source frame.
+        frame_range: ``[first, stop)`` frame numbers both frames of a pair must lie in (a
+            temporal train/test split of one sequence); ``None`` uses every frame.
         use_poses: label pairs from the camera poses (``False``: unlabeled pairs).
         intrinsics: ``[fx, fy, cx, cy]`` or an intrinsics file (JSON / 3x3 text); default from
             the folder or the layout.
@@ -216,6 +218,7 @@ class RgbdSequencePairs(PairDataset):
         layout: str = "auto",
         frame_gap: int = 20,
         pair_stride: int = 1,
+        frame_range: Sequence[int] | None = None,
         use_poses: bool = True,
         intrinsics: Sequence[float] | str | Path | None = None,
         depth_scale: float | None = None,
@@ -237,6 +240,11 @@ class RgbdSequencePairs(PairDataset):
         self.layout = _detect_layout(self.root) if layout == "auto" else layout
         readers = {"7scenes": _seven_scenes_frames, "tum": _tum_frames, "folder": _folder_frames}
         frames = readers[self.layout](self.root, use_poses)
+        if frame_range is not None:
+            if len(frame_range) != 2 or frame_range[0] >= frame_range[1]:
+                raise ValueError(f"frame_range must be [first, stop) with first < stop, got {list(frame_range)}")
+            frames = [f for f in frames if frame_range[0] <= f.number < frame_range[1]]
+        self.frame_range = None if frame_range is None else [int(v) for v in frame_range]
         by_number = {frame.number: frame for frame in frames}
         starts = [f for f in frames if f.number + frame_gap in by_number][::pair_stride]
         self.pairs = [(f, by_number[f.number + frame_gap]) for f in starts]
@@ -308,6 +316,7 @@ class RgbdSequencePairs(PairDataset):
             "root": str(self.root),
             "layout": self.layout,
             "pairs": [[s.number, t.number] for s, t in self.pairs],
+            "frame_range": self.frame_range,
             "use_poses": self.use_poses,
             "intrinsics": self.intrinsics.as_list(),
             "depth_scale": self.depth_scale,
@@ -325,6 +334,7 @@ def build_rgbd_sequence(
     layout: str = "auto",
     frame_gap: int = 20,
     pair_stride: int = 1,
+    frame_range: Sequence[int] | None = None,
     use_poses: bool = True,
     intrinsics: Sequence[float] | str | None = None,
     depth_scale: float | None = None,
@@ -341,6 +351,7 @@ def build_rgbd_sequence(
         layout=layout,
         frame_gap=frame_gap,
         pair_stride=pair_stride,
+        frame_range=frame_range,
         use_poses=use_poses,
         intrinsics=intrinsics,
         depth_scale=depth_scale,

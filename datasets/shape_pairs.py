@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from collections import OrderedDict
+from collections.abc import Sequence
 from typing import Any, Protocol
 
 from datasets.base import PairDataset, item_rng
@@ -25,7 +26,7 @@ class ShapeCollection(Protocol):
 
 
 class ShapePairDataset(PairDataset):
-    """Pairs ``index = shape_index * pairs_per_shape + view`` of a shape collection.
+    """Pairs ``index = shape_index * len(views) + slot`` (view ``views[slot]``) of a shape collection.
 
     Consecutive indices share a shape, whose renderer (ray-casting scene, whole-surface
     samples) stays in a small per-process LRU cache.
@@ -36,6 +37,8 @@ class ShapePairDataset(PairDataset):
         seed: base seed; pair ``index`` uses the generator ``(seed, split, index)``.
         name: registry name recorded in metadata and cache folder names.
         shape_cache_size: renderers kept per process.
+        views: the protocol's view indices to use (a held-out-views split); ``None``: all.
+        split: split name that picks the random stream; ``None``: the shape source's split.
     """
 
     def __init__(
@@ -46,9 +49,16 @@ class ShapePairDataset(PairDataset):
         seed: int = 0,
         name: str = "shapes",
         shape_cache_size: int = 4,
+        views: Sequence[int] | None = None,
+        split: str | None = None,
     ) -> None:
         if len(shapes) == 0:
             raise ValueError(f"{name}: the shape source is empty ({shapes.describe()})")
+        all_views = range(protocol.pairs_per_shape)
+        self.views = list(all_views) if views is None else sorted(int(v) for v in views)
+        if not self.views or any(v not in all_views for v in self.views):
+            raise ValueError(f"{name}: views must be a non-empty subset of 0..{protocol.pairs_per_shape - 1}")
+        self.split = shapes.split if split is None else split
         self.shapes = shapes
         self.protocol = protocol
         self.seed = seed
@@ -57,7 +67,7 @@ class ShapePairDataset(PairDataset):
         self._renderers: OrderedDict[int, ShapeViews] = OrderedDict()
 
     def __len__(self) -> int:
-        return len(self.shapes) * self.protocol.pairs_per_shape
+        return len(self.shapes) * len(self.views)
 
     def __getstate__(self) -> dict[str, Any]:
         state = dict(self.__dict__)
@@ -76,10 +86,11 @@ class ShapePairDataset(PairDataset):
         return renderer
 
     def make_pair(self, index: int) -> PairSample:
-        shape_index, view = divmod(index, self.protocol.pairs_per_shape)
+        shape_index, slot = divmod(index, len(self.views))
+        view = self.views[slot]
         renderer = self._renderer(shape_index)
-        split_stream = {"train": 0, "val": 1, "test": 2}.get(self.shapes.split, 3)
-        rng = item_rng(self.seed, _PAIR_STREAM, split_stream, index)
+        split_stream = {"train": 0, "val": 1, "test": 2}.get(self.split, 3)
+        rng = item_rng(self.seed, _PAIR_STREAM, split_stream, shape_index * self.protocol.pairs_per_shape + view)
         pair = self.protocol.make_pair(renderer, view, rng)
         pair.meta = {
             "dataset": self.registry_name,
@@ -94,6 +105,8 @@ class ShapePairDataset(PairDataset):
         return {
             "dataset": self.registry_name,
             "shapes": self.shapes.describe(),
+            "views": self.views,
+            "split": self.split,
             "protocol": protocol_settings(self.protocol),
             "seed": self.seed,
         }

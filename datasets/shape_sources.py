@@ -11,6 +11,8 @@ Splits: ``split="all"`` keeps everything; ``"train"`` / ``"test"`` follow ``spli
 * ``"random"``: the paper's split: the (optionally first ``max_shapes``) shapes are shuffled
   with ``split_seed`` and the first ``train_fraction`` of them are train (Airplane: 625 shapes,
   500 train / 125 test; Human: 110 meshes, 100 / 10).
+* ``"views"``: every shape in both splits, its protocol views (camera stops) shuffled with
+  ``split_seed`` and the first ``train_fraction`` of them train (held-out views of few shapes).
 """
 
 from __future__ import annotations
@@ -28,7 +30,7 @@ from datasets.shape_pairs import ShapePairDataset
 from linereg.io import MESH_SUFFIXES, read_mesh, read_point_cloud
 
 SPLITS = ("train", "test", "all")
-SPLIT_RULES = ("official", "random")
+SPLIT_RULES = ("official", "random", "views")
 
 # Official ModelNet40 sizes per class (train, test); ids 1..train are train, the rest test.
 MODELNET40_SPLIT_SIZES: dict[str, tuple[int, int]] = {
@@ -305,6 +307,25 @@ class ModelNet40Shapes:
         return dict(self._settings, split=self.split)
 
 
+def _shape_pairs(
+    shapes: MeshFolderShapes | ModelNet40Shapes,
+    protocol: str | Mapping[str, Any],
+    split: str,
+    split_rule: str,
+    train_fraction: float,
+    split_seed: int,
+    seed: int,
+    name: str,
+) -> ShapePairDataset:
+    """The pair dataset of a shape source; the ``"views"`` rule splits the camera stops."""
+    _check_split(split, split_rule, train_fraction)
+    protocol = build_protocol(protocol)
+    if split_rule != "views":
+        return ShapePairDataset(shapes, protocol, seed=seed, name=name)
+    views = random_split(range(protocol.pairs_per_shape), split, train_fraction=train_fraction, split_seed=split_seed)
+    return ShapePairDataset(shapes, protocol, seed=seed, name=name, views=views, split=split)
+
+
 @DATASETS.register("mesh_folder")
 def build_mesh_folder(
     *,
@@ -319,16 +340,17 @@ def build_mesh_folder(
     seed: int = 0,
 ) -> ShapePairDataset:
     """Pairs from any folder of meshes (see :class:`MeshFolderShapes` and the protocol)."""
+    shape_split = "all" if split_rule == "views" else split
     shapes = MeshFolderShapes(
         root,
         categories=categories,
-        split=split,
-        split_rule=split_rule,
+        split=shape_split,
+        split_rule="random" if split_rule == "views" else split_rule,
         train_fraction=train_fraction,
         split_seed=split_seed,
         max_shapes=max_shapes,
     )
-    return ShapePairDataset(shapes, build_protocol(protocol), seed=seed, name="mesh_folder")
+    return _shape_pairs(shapes, protocol, split, split_rule, train_fraction, split_seed, seed, "mesh_folder")
 
 
 @DATASETS.register("modelnet40")
@@ -346,14 +368,15 @@ def build_modelnet40(
     seed: int = 0,
 ) -> ShapePairDataset:
     """Pairs from ModelNet40 shapes (see :class:`ModelNet40Shapes` and the protocol)."""
+    shape_split = "all" if split_rule == "views" else split
     shapes = ModelNet40Shapes(
         root,
         categories=categories,
-        split=split,
-        split_rule=split_rule,
+        split=shape_split,
+        split_rule="random" if split_rule == "views" else split_rule,
         train_fraction=train_fraction,
         split_seed=split_seed,
         max_shapes=max_shapes,
         file_format=file_format,
     )
-    return ShapePairDataset(shapes, build_protocol(protocol), seed=seed, name="modelnet40")
+    return _shape_pairs(shapes, protocol, split, split_rule, train_fraction, split_seed, seed, "modelnet40")

@@ -93,6 +93,25 @@ def test_mesh_folder_random_split_partitions_the_shapes(mesh_root):
     assert len(train) == len(test) == 2 and len(set(names)) == 4
 
 
+def test_mesh_folder_views_split_holds_out_camera_stops(mesh_root):
+    config = {
+        "name": "mesh_folder",
+        "root": str(mesh_root),
+        "split_rule": "views",
+        "train_fraction": 0.75,
+        "protocol": {"name": "human", "num_views": 4},
+    }
+    train = build_dataset({**config, "split": "train"})
+    test = build_dataset({**config, "split": "test"})
+    assert len(train.shapes) == len(test.shapes) == 4
+    assert len(train.views) == 3 and len(test.views) == 1 and not set(train.views) & set(test.views)
+    assert len(train) == 12 and len(test) == 4
+    assert test[1].meta["shape"] == test.shapes.load(1).name
+    assert not np.allclose(train[0].gt_transform, test[0].gt_transform)
+    with pytest.raises(ValueError, match="split must be one of"):
+        build_dataset({**config, "split": "val"})
+
+
 def test_mesh_folder_errors(tmp_path, mesh_root):
     with pytest.raises(FileNotFoundError, match="mesh folder not found"):
         build_dataset({"name": "mesh_folder", "root": str(tmp_path / "nowhere")})
@@ -400,6 +419,10 @@ def test_seven_scenes_layout(tmp_path, camera_poses):
     _assert_frames_aligned(dense[1])
     unlabeled = build_dataset({"name": "rgbd_sequence", "root": str(tmp_path), "frame_gap": 4, "use_poses": False})
     assert len(unlabeled) == 1 and unlabeled[0].gt_transform is None
+    late = build_dataset({"name": "rgbd_sequence", "root": str(tmp_path), "frame_gap": 2, "frame_range": [2, 100]})
+    assert [(s.number, t.number) for s, t in late.pairs] == [(2, 4)]
+    with pytest.raises(ValueError, match="frame_range must be"):
+        build_dataset({"name": "rgbd_sequence", "root": str(tmp_path), "frame_range": [4, 2]})
 
 
 def test_tum_layout(tmp_path, camera_poses):

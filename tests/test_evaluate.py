@@ -73,6 +73,31 @@ def test_evaluate_on_another_dataset_and_split(trained_run, tmp_path, capsys):
     assert "Err_R (deg)" in capsys.readouterr().out
 
 
+def test_evaluate_on_the_test_pairs_of_another_run(trained_run, tmp_path):
+    run_dir, _ = trained_run
+    other = tmp_path / "other"
+    other_cfg = _compose(
+        "train",
+        [
+            "debug=tiny",
+            f"paths.output_dir={other}",
+            "model.num_neighbors=8",
+            "loss.num_lines=300",
+            "dataset.splits.test.num_shapes=2",
+            "trainer.num_points=48",
+        ],
+    )
+    loop.train(other_cfg)
+    cfg = _compose(
+        "evaluate", [f"checkpoint={run_dir}", f"data_from={other}", f"output_dir={tmp_path}/eval", "progress=false"]
+    )
+    content = evaluate(cfg)
+    assert content["num_pairs"] == 4 and cfg.trainer.num_points == 48
+    both = _compose("evaluate", [f"checkpoint={run_dir}", f"data_from={other}", "dataset=procedural"])
+    with pytest.raises(ValueError, match="either dataset=... or data_from"):
+        evaluate(both)
+
+
 def test_report_of_unlabelled_data():
     text = report("model", Evaluation(num_pairs=3, losses={"loss": 0.25}), [0.1])
     assert text == "3 pairs without ground truth: no registration errors; mean loss 0.25."

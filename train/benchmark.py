@@ -35,6 +35,10 @@ shared data folder, :func:`linereg.paths.shared_data_dir`):
     The user's pairs ``<name>_src/_tgt.<ext>`` + ``<name>_gt.txt`` (``datasets.pairs_folder``).
 ``dataset``
     Any labelled dataset config of :func:`datasets.build_dataset`.
+``run``
+    The pairs of one split (default ``test``) of a training run's dataset, read from the run's
+    checkpoint: the classical methods scored on exactly the pairs a trained model was
+    evaluated on (``scripts/reproduce.sh``).
 
 When a source holds more pairs than requested, ``pairs`` of them are drawn at random without
 replacement (seeded) and kept in index order.
@@ -70,6 +74,8 @@ from linereg.se3 import transform_normals, transform_points
 from linereg.structures import PairSample
 
 from . import baselines, solvers  # noqa: F401  (importing registers the baselines and adam_loss / svd_irls)
+from .checkpoint import find_checkpoint, load_checkpoint
+from .curriculum import build_split
 from .methods import METHODS, Method, build_method
 
 PAIR_SOURCES: Registry[list[PairSample]] = Registry("benchmark pair source")
@@ -129,6 +135,24 @@ def dataset_pairs(dataset: Mapping[str, Any], *, pairs: int | None = None, seed:
     built = build_dataset(dataset)
     chosen = [built[i] for i in select_indices(len(built), pairs, seed)]
     return _labelled(chosen, f"dataset {dict(dataset).get('name')!r}")
+
+
+@PAIR_SOURCES.register("run")
+def run_pairs(*, run: str, split: str = "test", pairs: int | None = None, seed: int = 0) -> list[PairSample]:
+    """The ``split`` pairs of a training run's dataset (its checkpoint's resolved config).
+
+    Args:
+        run: run folder or checkpoint file (``python -m train`` output).
+        split: dataset split (``train``, ``val`` or ``test``).
+        pairs: number of pairs (``None``: all).
+        seed: seed of the draw.
+    """
+    config = load_checkpoint(find_checkpoint(run))["config"]
+    built = build_split(config["dataset"], split, progress=False)
+    if built is None:
+        raise ValueError(f"run {run}: its dataset has no {split!r} split")
+    chosen = [built[i] for i in select_indices(len(built), pairs, seed)]
+    return _labelled(chosen, f"run {run} ({split!r} split)")
 
 
 @PAIR_SOURCES.register("human")

@@ -287,7 +287,7 @@ def write_evaluation(
 
 
 def evaluate(cfg: DictConfig) -> dict[str, Any]:
-    """Evaluate ``cfg.checkpoint`` on ``cfg.split`` of ``cfg.dataset`` (or the checkpoint's dataset).
+    """Evaluate ``cfg.checkpoint`` on ``cfg.split`` of ``cfg.dataset``, of the run ``cfg.data_from``, or its own.
 
     Args:
         cfg: the composed ``configs/evaluate.yaml``.
@@ -302,10 +302,13 @@ def evaluate(cfg: DictConfig) -> dict[str, Any]:
     model = build_model(stored["model"])
     model.load_state_dict(state["model"])
     model.to(device)
+    data_source = load_checkpoint(cfg.data_from)["config"] if cfg.get("data_from") else stored
+    if cfg.get("dataset") and cfg.get("data_from"):
+        raise ValueError("give either dataset=... or data_from=..., not both")
     with open_dict(cfg):
         if cfg.trainer.num_points is None:
-            cfg.trainer.num_points = stored["trainer"]["num_points"]
-    dataset_config = plain(cfg.dataset) if cfg.get("dataset") else stored["dataset"]
+            cfg.trainer.num_points = data_source["trainer"]["num_points"]
+    dataset_config = plain(cfg.dataset) if cfg.get("dataset") else data_source["dataset"]
     dataset: Dataset | None = build_split(dataset_config, cfg.split, progress=cfg.progress)
     if dataset is None:
         raise ValueError(f"dataset {dataset_config.get('name')!r} has no {cfg.split!r} split")

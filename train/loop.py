@@ -444,8 +444,10 @@ class Trainer:
         return means
 
     # ----------------------------------------------------------------------------- evaluation
-    def _evaluate(self, dataset, *, keep: int = 0, description: str = "validate") -> Evaluation:
-        """Evaluate the current model on ``dataset`` (this process only)."""
+    def _evaluate(
+        self, dataset, *, keep: int = 0, description: str = "validate", max_batches: int | None = None
+    ) -> Evaluation:
+        """Evaluate the current model on ``dataset`` (this process only; ``max_batches``: a prefix)."""
         loader = distributed.make_loader(
             dataset,
             batch_size=self.settings.eval_batch_size,
@@ -459,7 +461,7 @@ class Trainer:
             device=self.device,
             loss=self.loss,
             amp=self.amp,
-            max_batches=self.settings.max_eval_batches,
+            max_batches=max_batches,
             keep=keep,
             progress=self.settings.progress,
             description=description,
@@ -471,7 +473,7 @@ class Trainer:
             return {}
         logger_config = self.config["logger"]
         keep = logger_config.get("num_figures", 0) if logger_config.get("tensorboard") else 0
-        evaluation = self._evaluate(self.val_data, keep=keep)
+        evaluation = self._evaluate(self.val_data, keep=keep, max_batches=self.settings.max_eval_batches)
         metrics = {f"val/{k}": v for k, v in evaluation.metrics(self.settings.alphas).items()}
         if self.logger is not None:
             self.logger.scalars(metrics, self.global_step)

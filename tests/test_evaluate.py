@@ -94,7 +94,7 @@ def test_evaluate_on_the_test_pairs_of_another_run(trained_run, tmp_path):
     content = evaluate(cfg)
     assert content["num_pairs"] == 4 and cfg.trainer.num_points == 48
     both = _compose("evaluate", [f"checkpoint={run_dir}", f"data_from={other}", "dataset=procedural"])
-    with pytest.raises(ValueError, match="either dataset=... or data_from"):
+    with pytest.raises(ValueError, match=r"either dataset=\.\.\. or data_from"):
         evaluate(both)
 
 

@@ -14,9 +14,10 @@ from omegaconf import open_dict
 from linereg.io import read_point_cloud, read_transform, write_point_cloud, write_transform
 from linereg.metrics import registration_errors
 from linereg.paths import REPO_ROOT
-from linereg.se3 import euler_to_rotmat, rt_to_matrix
+from linereg.se3 import euler_to_rotmat, rotation_angle, rt_to_matrix
 from train.methods import build_method
 from train.register import register_files
+from train.solvers import start_poses
 
 
 def surface(n: int, seed: int) -> np.ndarray:
@@ -47,7 +48,7 @@ def err_r(T_pred: np.ndarray, T_gt: np.ndarray, src: np.ndarray) -> float:
 FAST_ADAM = {
     "name": "adam_loss",
     "stages": [
-        {"loss": {"name": "chamfer_welsch", "nu0": 2.0}, "iterations": 40, "lr": 0.03},
+        {"loss": {"name": "chamfer_welsch", "nu0": 2.0}, "iterations": 40, "lr": 0.03, "points": 256},
         {"loss": {"name": "line_intersection", "variant": "linereg", "num_lines": 3000}, "iterations": 60, "lr": 0.01},
     ],
     "num_points": 512,
@@ -66,6 +67,27 @@ def test_solvers_recover_a_known_pose(config):
     assert result.seconds > 0 and len(result.info["loss_curve"]) > 0
 
 
+def test_multi_start_escapes_the_local_minimum_of_a_single_start():
+    src = surface(800, 0)
+    T = pose([100, 40, 0], [0.2, 0.0, 0.0])
+    tgt = apply(T, surface(800, 0))
+    single = build_method({**FAST_ADAM, "starts": 1})(src, tgt)
+    multi = build_method({**FAST_ADAM, "starts": 7})(src, tgt)
+    assert err_r(single.transform, T, src) > 90.0
+    assert err_r(multi.transform, T, src) < 1.0 and multi.info["start"] != 0
+
+
+def test_start_poses():
+    poses = start_poses(7, 90.0)
+    assert poses.shape == (7, 4, 4)
+    np.testing.assert_allclose(poses[0].numpy(), np.eye(4))
+    np.testing.assert_allclose(rotation_angle(poses[1:, :3, :3]).numpy(), np.full(6, math.pi / 2))
+    np.testing.assert_allclose(poses[1:, :3, 3].numpy(), 0.0)
+    np.testing.assert_allclose(poses[1, :3, :3].numpy() @ [0, 1, 0], [0, 0, 1], atol=1e-12)
+    with pytest.raises(ValueError, match="starts must be in 1..7"):
+        start_poses(8)
+
+
 def test_identical_clouds_give_the_identity():
     cloud = surface(600, 1)
     result = build_method({**FAST_ADAM, "num_points": 400})(cloud, cloud)
@@ -75,6 +97,11 @@ def test_identical_clouds_give_the_identity():
 def test_supervised_loss_is_rejected():
     with pytest.raises(ValueError, match="ground truth"):
         build_method({"name": "adam_loss", "stages": [{"loss": {"name": "gt_dcp"}, "iterations": 1, "lr": 0.1}]})
+
+
+def test_a_loss_that_is_no_alignment_metric_is_rejected():
+    with pytest.raises(ValueError, match="not an alignment metric"):
+        build_method({"name": "adam_loss", "stages": [{"loss": {"name": "rpmnet_outlier"}, "iterations": 1, "lr": 0.1}]})
 
 
 def test_unknown_stage_preset_and_keys():

@@ -55,7 +55,8 @@ def method_config(cfg: DictConfig) -> dict[str, Any]:
         stages = [{"loss": loss, "iterations": cfg.iterations, "lr": cfg.lr}]
     else:
         stages = cfg.stages if isinstance(cfg.stages, str) else OmegaConf.to_container(cfg.stages)
-    return {"name": "adam_loss", "stages": stages, **common}
+    starts = {"starts": cfg.starts, "start_angle_deg": cfg.start_angle_deg}
+    return {"name": "adam_loss", "stages": stages, **starts, **common}
 
 
 def register_files(cfg: DictConfig, out_dir: Path) -> tuple[MethodResult, dict[str, Any]]:

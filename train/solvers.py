@@ -29,8 +29,8 @@ from tqdm.auto import tqdm
 from linereg.pointcloud import farthest_point_sampling
 from linereg.procrustes import weighted_procrustes
 from linereg.se3 import se3_exp, transform_points
-from linereg.structures import PairBatch, RegistrationOutput
 from losses import build_loss
+from losses.base import AlignmentLoss
 from losses.line_intersection import LineMetricOptions, line_correspondences
 
 from .methods import METHODS, MethodResult, run_centered
@@ -41,17 +41,29 @@ Monitor = Callable[[int, np.ndarray, float], dict[str, float]]
 
 @dataclass(frozen=True)
 class Stage:
-    """One stage of an Adam schedule: a loss config, iterations and a peak learning rate."""
+    """One stage of an Adam schedule: a loss config, iterations, a peak learning rate and
+    optionally fewer points (an FPS subset of both clouds) for a cheap coarse stage."""
 
     loss: Mapping[str, Any]
     iterations: int
     lr: float
+    points: int | None = None
 
 
+# The register default, chosen on the Human/Airplane benchmark (README, issue #4 notes): a cheap
+# CD-W stage on 512 points from every start, then the line metric with the candidate points as
+# intersections (the paper's "Insec1" ablation, the most precise variant here).
 DEFAULT_STAGES: tuple[Stage, ...] = (
-    Stage(loss={"name": "chamfer_welsch", "nu0": 2.0}, iterations=60, lr=0.03),
-    Stage(loss={"name": "line_intersection", "variant": "linereg", "num_lines": 5000}, iterations=150, lr=0.01),
+    Stage(loss={"name": "chamfer_welsch", "nu0": 2.0}, iterations=60, lr=0.03, points=512),
+    Stage(loss={"name": "line_intersection", "intersection": "candidates", "num_lines": 5000}, iterations=150, lr=0.01),
 )
+# Picks the best of several starts: the line metric with a fixed Welsch scale (unit-ball units).
+DEFAULT_SELECT: Mapping[str, Any] = {
+    "name": "line_intersection",
+    "intersection": "candidates",
+    "num_lines": 10000,
+    "nu": 0.05,
+}
 PAPER_STAGES: tuple[Stage, ...] = (Stage(loss={"name": "line_intersection"}, iterations=500, lr=0.02),)
 
 
@@ -85,10 +97,18 @@ def _as_stages(stages: Sequence[Stage | Mapping[str, Any]] | str) -> tuple[Stage
             out.append(stage)
             continue
         stage = dict(stage)
-        unknown = set(stage) - {"loss", "iterations", "lr"}
+        unknown = set(stage) - {"loss", "iterations", "lr", "points"}
         if unknown:
-            raise TypeError(f"unknown stage key(s) {sorted(unknown)}; a stage has loss, iterations and lr")
-        out.append(Stage(loss=dict(stage["loss"]), iterations=int(stage["iterations"]), lr=float(stage["lr"])))
+            raise TypeError(f"unknown stage key(s) {sorted(unknown)}; a stage has loss, iterations, lr and points")
+        points = stage.get("points")
+        out.append(
+            Stage(
+                loss=dict(stage["loss"]),
+                iterations=int(stage["iterations"]),
+                lr=float(stage["lr"]),
+                points=None if points is None else int(points),
+            )
+        )
     if not out:
         raise ValueError("an Adam schedule needs at least one stage")
     return tuple(out)
@@ -112,17 +132,48 @@ class _Solver:
         raise NotImplementedError
 
 
+def start_poses(count: int, angle_deg: float = 90.0) -> torch.Tensor:
+    """Initial poses of a multi-start: the identity, then rotations by ``angle_deg`` about +x, +y,
+    +z, -x, -y, -z (the clouds are centred, so about their centroids), in that order.
+
+    Returns:
+        Float64 tensor of shape ``(count, 4, 4)``.
+    """
+    if not 1 <= count <= 7:
+        raise ValueError(f"starts must be in 1..7 (identity and +-angle about 3 axes), got {count}")
+    axes = torch.cat([torch.eye(3), -torch.eye(3)]).double()
+    rotvecs = torch.cat([torch.zeros(1, 3, dtype=torch.float64), axes * np.deg2rad(angle_deg)])[:count]
+    return se3_exp(torch.cat([rotvecs, torch.zeros_like(rotvecs)], dim=1))
+
+
+def _subsample_tensor(points: torch.Tensor, num_points: int | None) -> torch.Tensor:
+    if num_points is None or len(points) <= num_points:
+        return points
+    return points[torch.as_tensor(farthest_point_sampling(points.float().numpy(), num_points))]
+
+
 class AdamRegistration(_Solver):
-    """Adam on ``xi`` in se(3) with any unsupervised registered loss.
+    """Adam on ``xi`` in se(3) with any registered alignment loss, optionally from several starts.
+
+    With ``starts > 1`` the first stage runs from every pose of :func:`start_poses` at once
+    (a batch), the ``select`` loss picks the best result, and the remaining stages refine it.
+    The criterion needs a fixed scale: the paper's line metric sets Welsch's scale from the
+    median distance of the pose being scored, which makes its value nearly pose-independent.
 
     Args:
-        stages: list of ``{loss: {name, ...}, iterations, lr}`` or a preset name: ``default``
-            (a short CD-W stage, then the line metric; chosen on the benchmark, see README) or
-            ``paper`` (the line metric alone, 500 iterations, lr 0.02, 15000 lines).
+        stages: list of ``{loss: {name, ...}, iterations, lr, points}`` or a preset name:
+            ``default`` (a short CD-W stage, then the line metric with candidate intersections;
+            chosen on the benchmark, see README) or ``paper`` (the paper's line metric alone,
+            500 iterations, lr 0.02, 15000 lines; use it with ``starts=1`` for the paper's solver).
         num_points: FPS subsample size of both clouds for the loss (``None``: all points).
         seed: seeds the lines of every line-based loss.
         progress: show a progress bar with the loss (and the monitor's values).
         monitor: optional callback, e.g. the rotation error when ground truth is known.
+        center: register centred clouds (:func:`~train.methods.run_centered`).
+        starts: initial poses of the first stage (1..7, see :func:`start_poses`).
+        start_angle_deg: rotation of the extra starts.
+        select: loss config that picks the best start (lowest value), in the solver's units
+            (clouds centred and scaled into the unit ball).
     """
 
     def __init__(
@@ -133,6 +184,9 @@ class AdamRegistration(_Solver):
         progress: bool = False,
         monitor: Monitor | None = None,
         center: bool = True,
+        starts: int = 7,
+        start_angle_deg: float = 90.0,
+        select: Mapping[str, Any] | None = None,
     ) -> None:
         self.stages = _as_stages(stages)
         self.losses = []
@@ -145,38 +199,64 @@ class AdamRegistration(_Solver):
                 raise ValueError(
                     f"stage {i}: loss {stage.loss.get('name')!r} needs ground truth; registration is unsupervised"
                 )
+            if not isinstance(loss, AlignmentLoss):
+                raise ValueError(
+                    f"stage {i}: loss {stage.loss.get('name')!r} is not an alignment metric between two clouds"
+                )
             self.losses.append(loss)
+        self.start_poses = start_poses(starts, start_angle_deg)
+        select = dict(DEFAULT_SELECT if select is None else select)
+        if select.get("name") == "line_intersection":
+            select.setdefault("seed", seed + len(self.stages))
+        self.select = build_loss(select)
         self.num_points = num_points
         self.progress = progress
         self.monitor = monitor
         self.center = center
 
     def _optimise(self, src_t, tgt_t, unscale):
-        batch = PairBatch(src_xyz=src_t[None], tgt_xyz=tgt_t[None])
-        pose = torch.eye(4, dtype=torch.float64)
+        poses = self.start_poses.clone()
         curve: list[float] = []
-        shown: dict[str, float] = {}
-        total = sum(stage.iterations for stage in self.stages)
-        bar = tqdm(total=total, disable=not self.progress, desc="register", leave=False)
+        bar = tqdm(
+            total=sum(s.iterations for s in self.stages), disable=not self.progress, desc="register", leave=False
+        )
+        chosen = 0
         for stage, loss in zip(self.stages, self.losses, strict=True):
-            xi = torch.zeros(6, dtype=torch.float64, requires_grad=True)
-            optimiser = torch.optim.Adam([xi], lr=stage.lr)
-            schedule = torch.optim.lr_scheduler.CosineAnnealingLR(optimiser, T_max=max(stage.iterations, 1))
-            for _ in range(stage.iterations):
-                transform = se3_exp(xi) @ pose
-                value = loss(RegistrationOutput(transforms=[transform[None]]), batch).total
-                optimiser.zero_grad()
-                value.backward()
-                optimiser.step()
-                schedule.step()
-                curve.append(value.item())
-                if self.monitor is not None:
-                    shown = self.monitor(len(curve), unscale(transform.detach().numpy()), curve[-1])
-                bar.set_postfix(loss=f"{curve[-1]:.4g}", **{k: f"{v:.3g}" for k, v in shown.items()})
-                bar.update()
-            pose = (se3_exp(xi) @ pose).detach()
+            src, tgt = _subsample_tensor(src_t, stage.points), _subsample_tensor(tgt_t, stage.points)
+            poses = self._run_stage(stage, loss, src, tgt, poses, curve, bar, unscale)
+            if len(poses) > 1:
+                with torch.no_grad():
+                    moved = transform_points(poses, src_t.expand(len(poses), -1, -1))
+                    values, _ = self.select.metric(moved, tgt_t.expand(len(poses), -1, -1).contiguous())
+                chosen = int(values.argmin())
+                poses = poses[chosen : chosen + 1]
         bar.close()
-        return pose, {"loss_curve": curve}
+        return poses[0], {"loss_curve": curve, "start": chosen}
+
+    def _run_stage(self, stage, loss, src, tgt, poses, curve, bar, unscale) -> torch.Tensor:
+        """Adam with a cosine schedule from every pose in ``poses (K, 4, 4)``; the final poses.
+
+        ``curve`` receives the lowest loss over the starts at each iteration."""
+        count = len(poses)
+        src_batch, tgt_batch = src.expand(count, -1, -1), tgt.expand(count, -1, -1).contiguous()
+        xi = torch.zeros(count, 6, dtype=torch.float64, requires_grad=True)
+        optimiser = torch.optim.Adam([xi], lr=stage.lr)
+        schedule = torch.optim.lr_scheduler.CosineAnnealingLR(optimiser, T_max=max(stage.iterations, 1))
+        shown: dict[str, float] = {}
+        for _ in range(stage.iterations):
+            transforms = se3_exp(xi) @ poses
+            values, _ = loss.metric(transform_points(transforms, src_batch), tgt_batch)
+            optimiser.zero_grad()
+            values.sum().backward()
+            optimiser.step()
+            schedule.step()
+            best = int(values.argmin())
+            curve.append(values[best].item())
+            if self.monitor is not None:
+                shown = self.monitor(len(curve), unscale(transforms[best].detach().numpy()), curve[-1])
+            bar.set_postfix(loss=f"{curve[-1]:.4g}", **{k: f"{v:.3g}" for k, v in shown.items()})
+            bar.update()
+        return (se3_exp(xi) @ poses).detach()
 
 
 class IRLSRegistration(_Solver):

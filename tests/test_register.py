@@ -84,7 +84,7 @@ def test_start_poses():
     np.testing.assert_allclose(rotation_angle(poses[1:, :3, :3]).numpy(), np.full(6, math.pi / 2))
     np.testing.assert_allclose(poses[1:, :3, 3].numpy(), 0.0)
     np.testing.assert_allclose(poses[1, :3, :3].numpy() @ [0, 1, 0], [0, 0, 1], atol=1e-12)
-    with pytest.raises(ValueError, match="starts must be in 1..7"):
+    with pytest.raises(ValueError, match=r"starts must be in 1\.\.7"):
         start_poses(8)
 
 
@@ -101,7 +101,8 @@ def test_supervised_loss_is_rejected():
 
 def test_a_loss_that_is_no_alignment_metric_is_rejected():
     with pytest.raises(ValueError, match="not an alignment metric"):
-        build_method({"name": "adam_loss", "stages": [{"loss": {"name": "rpmnet_outlier"}, "iterations": 1, "lr": 0.1}]})
+        stage = {"loss": {"name": "rpmnet_outlier"}, "iterations": 1, "lr": 0.1}
+        build_method({"name": "adam_loss", "stages": [stage]})
 
 
 def test_unknown_stage_preset_and_keys():

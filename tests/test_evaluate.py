@@ -11,6 +11,9 @@ import torch
 from hydra import compose, initialize_config_dir
 
 from train import loop
+from train.benchmark import run_pairs
+from train.checkpoint import find_checkpoint, load_checkpoint
+from train.curriculum import build_split
 from train.evaluate import Evaluation, evaluate, report
 from train.figures import plot_registration, registration_figure
 
@@ -96,6 +99,17 @@ def test_evaluate_on_the_test_pairs_of_another_run(trained_run, tmp_path):
     both = _compose("evaluate", [f"checkpoint={run_dir}", f"data_from={other}", "dataset=procedural"])
     with pytest.raises(ValueError, match=r"either dataset=\.\.\. or data_from"):
         evaluate(both)
+
+
+def test_benchmark_pairs_of_a_run_are_its_test_pairs(trained_run):
+    run_dir, _ = trained_run
+    pairs = run_pairs(run=str(run_dir))
+    state = load_checkpoint(find_checkpoint(run_dir))
+    expected = build_split(state["config"]["dataset"], "test", progress=False)
+    assert len(pairs) == len(expected) == 2
+    np.testing.assert_array_equal(pairs[1].src_xyz, expected[1].src_xyz)
+    np.testing.assert_array_equal(pairs[1].gt_transform, expected[1].gt_transform)
+    assert len(run_pairs(run=str(run_dir), split="val", pairs=1)) == 1
 
 
 def test_report_of_unlabelled_data():

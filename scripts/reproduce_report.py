@@ -1,0 +1,220 @@
+"""Tables and figures of docs/results.md from the runs of scripts/reproduce.sh.
+
+    python scripts/reproduce_report.py [outputs/reproduce] [--docs docs/results]
+
+Reads every ``<protocol>/<cell>_s<seed>/metrics.json`` (training runs), ``<protocol>/baselines/
+results.json`` (classical methods on the same test pairs) and ``real/rpm_gt_procedural_s*/
+metrics.json`` (a model evaluated without fine-tuning), and writes into ``--docs``:
+
+* ``tables.md``: per protocol, the paper-format table (means over the test pairs, averaged over
+  seeds, ± the spread between seeds when there are several) beside the paper's numbers, the
+  median Err_R and the wall-clock time of each cell;
+* ``curves_<protocol>.png``: validation Err_R during training (the scalars TensorBoard shows,
+  read from each run's ``scalars.jsonl``), one panel per backbone;
+* ``figure_<protocol>_<cell>.png``: before/after views of the first test pair of a few runs.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import re
+import shutil
+import statistics
+from collections import defaultdict
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt
+
+# The paper's Tables 3-5: Err_R (deg), Err_t l1, l2 and Err_pw l1, l2 (x 10^-1).
+PAPER = {
+    "airplane": {
+        "icp_point": (7.223, 0.131, 0.087, 0.136, 0.105),
+        "fricp": (6.91, 0.076, 0.051, 0.123, 0.094),
+        "fgr": (13.72, 0.099, 0.065, 0.156, 0.114),
+        "dcp_gt": (2.281, 0.067, 0.044, 0.073, 0.05),
+        "dcp_cd": (6.612, 0.165, 0.11, 0.198, 0.139),
+        "dcp_ours": (3.808, 0.082, 0.056, 0.093, 0.063),
+        "fmr_gt": (1.977, 0.086, 0.055, 0.099, 0.065),
+        "fmr_cd": (5.819, 0.215, 0.153, 0.247, 0.19),
+        "fmr_ours": (2.51, 0.117, 0.076, 0.134, 0.091),
+        "rpm_gt": (2.19, 0.041, 0.034, 0.043, 0.03),
+        "rpm_cd": (2.791, 0.103, 0.089, 0.102, 0.083),
+        "rpm_ours": (1.673, 0.042, 0.034, 0.045, 0.031),
+    },
+    "human": {
+        "dcp_gt": (3.841, 0.061, 0.039, 0.068, 0.046),
+        "dcp_cd": (7.021, 0.185, 0.114, 0.193, 0.130),
+        "dcp_ours": (4.841, 0.07, 0.046, 0.079, 0.054),
+        "fmr_gt": (2.122, 0.058, 0.039, 0.064, 0.043),
+        "fmr_cd": (6.207, 0.187, 0.123, 0.228, 0.134),
+        "fmr_ours": (1.521, 0.089, 0.051, 0.091, 0.063),
+        "rpm_gt": (1.921, 0.030, 0.021, 0.033, 0.023),
+        "rpm_cd": (8.373, 0.197, 0.16, 0.193, 0.133),
+        "rpm_ours": (1.33, 0.032, 0.024, 0.034, 0.023),
+    },
+    "real": {
+        "icp_point": (17.98, 0.337, 0.23, 0.238, 0.194),
+        "fricp": (11.08, 0.199, 0.139, 0.151, 0.112),
+        "fgr": (12.79, 0.211, 0.142, 0.260, 0.21),
+        "fmr_cd": (7.559, 0.469, 0.34, 0.531, 0.384),
+        "fmr_ours": (3.263, 0.089, 0.065, 0.101, 0.075),
+        "rpm_cd": (11.28, 0.342, 0.246, 0.376, 0.272),
+        "rpm_ours": (2.972, 0.057, 0.04, 0.068, 0.05),
+    },
+}
+KEYS = ("err_r_deg_mean", "err_t_l1_mean", "err_t_l2_mean", "err_pw_l1_mean", "err_pw_l2_mean")
+SCALE = (1.0, 10.0, 10.0, 10.0, 10.0)  # the paper prints Err_t and Err_pw x 10^-1
+ROW_ORDER = (
+    ["icp_point", "icp_plane", "fricp", "fgr"]
+    + [f"{b}_{loss}" for b in ("dcp", "fmr", "rpm") for loss in ("gt", "cd", "ours")]
+    + ["rpm_gt_procedural", "rpm_gt_finetuned"]
+)
+CELL = re.compile(r"(?P<cell>.+)_s(?P<seed>\d+)$")
+
+
+def _runs(protocol_dir: Path) -> dict[str, list[Path]]:
+    """``cell -> [run folders of each seed]`` for finished runs (or evaluations)."""
+    found: dict[str, list[Path]] = defaultdict(list)
+    for path in sorted(protocol_dir.iterdir()):
+        match = CELL.match(path.name)
+        if path.is_dir() and match and (path / "metrics.json").is_file():
+            found[match["cell"]].append(path)
+    return found
+
+
+def _test_metrics(run: Path) -> dict[str, float]:
+    """Test-split means of a training run, or of a ``train.evaluate`` output folder."""
+    content = json.loads((run / "metrics.json").read_text())
+    if "model" in content:  # python -m train.evaluate
+        return {key: content["model"][key] for key in (*KEYS, "err_r_deg_median")}
+    metrics = content["metrics"]
+    return {key: metrics[f"test/{key}"] for key in (*KEYS, "err_r_deg_median")}
+
+
+def _seconds(run: Path) -> float | None:
+    file = run.parent / f"{run.name}.seconds"
+    if not file.is_file():
+        return None
+    return sum(float(line) for line in file.read_text().split())
+
+
+def _fmt(values: list[float], scale: float) -> str:
+    mean = statistics.fmean(values) * scale
+    if len(values) == 1:
+        return f"{mean:.3f}"
+    return f"{mean:.3f} ± {statistics.stdev(values) * scale:.3f}"
+
+
+def protocol_rows(out: Path, protocol: str) -> list[dict[str, str]]:
+    """One table row per method: our measurement, the paper's, median Err_R, seeds and time."""
+    protocol_dir = out / protocol
+    rows: dict[str, dict[str, str]] = {}
+    for cell, runs in _runs(protocol_dir).items():
+        metrics = [_test_metrics(run) for run in runs]
+        cols = [_fmt([m[key] for m in metrics], scale) for key, scale in zip(KEYS, SCALE, strict=True)]
+        times = [t for t in (_seconds(run) for run in runs) if t is not None]
+        rows[cell] = {
+            "err_r": cols[0],
+            "err_t": f"{cols[1]}, {cols[2]}",
+            "err_pw": f"{cols[3]}, {cols[4]}",
+            "median_r": f"{statistics.fmean(m['err_r_deg_median'] for m in metrics):.3f}",
+            "seeds": str(len(runs)),
+            "time": f"{statistics.fmean(times) / 60:.1f} min" if times else "",
+        }
+    baseline_file = protocol_dir / "baselines" / "results.json"
+    if baseline_file.is_file():
+        for method, summary in json.loads(baseline_file.read_text())["summary"].items():
+            cols = [f"{summary[key] * scale:.3f}" for key, scale in zip(KEYS, SCALE, strict=True)]
+            rows[method] = {
+                "err_r": cols[0],
+                "err_t": f"{cols[1]}, {cols[2]}",
+                "err_pw": f"{cols[3]}, {cols[4]}",
+                "median_r": f"{summary['err_r_deg_median']:.3f}",
+                "seeds": "-",
+                "time": f"{summary['seconds_mean'] * 1000:.0f} ms/pair",
+            }
+    paper = PAPER.get(protocol, {})
+    ordered = sorted(rows, key=lambda name: ROW_ORDER.index(name) if name in ROW_ORDER else len(ROW_ORDER))
+    for name in ordered:
+        numbers = paper.get(name)
+        rows[name]["name"] = name
+        rows[name]["paper_r"] = f"{numbers[0]:.3f}" if numbers else ""
+        rows[name]["paper_pw"] = f"{numbers[3]:.3f}, {numbers[4]:.3f}" if numbers else ""
+    return [rows[name] for name in ordered]
+
+
+def markdown(rows: list[dict[str, str]]) -> str:
+    header = (
+        "| Method | Err_R (deg) | Err_t (x10^-1) (l1, l2) | Err_pw (x10^-1) (l1, l2) | median Err_R | "
+        "paper Err_R | paper Err_pw | seeds | time |\n|---|---|---|---|---|---|---|---|---|\n"
+    )
+    body = "".join(
+        f"| {r['name']} | {r['err_r']} | {r['err_t']} | {r['err_pw']} | {r['median_r']} | {r['paper_r']} | "
+        f"{r['paper_pw']} | {r['seeds']} | {r['time']} |\n"
+        for r in rows
+    )
+    return header + body
+
+
+def plot_curves(out: Path, protocol: str, path: Path) -> bool:
+    """Validation Err_R against training steps, one panel per backbone; False when no runs."""
+    runs = _runs(out / protocol)
+    backbones = sorted({cell.split("_")[0] for cell in runs if (runs[cell][0] / "scalars.jsonl").is_file()})
+    if not backbones:
+        return False
+    fig, axes = plt.subplots(1, len(backbones), figsize=(4.2 * len(backbones), 3.4), squeeze=False)
+    for ax, backbone in zip(axes[0], backbones, strict=True):
+        for cell, cell_runs in sorted(runs.items()):
+            scalars = cell_runs[0] / "scalars.jsonl"
+            if not cell.startswith(f"{backbone}_") or not scalars.is_file():
+                continue
+            records = [json.loads(line) for line in scalars.read_text().splitlines() if line.strip()]
+            points = [(r["step"], r["val/err_r_deg_mean"]) for r in records if "val/err_r_deg_mean" in r]
+            if points:
+                ax.plot(*zip(*points, strict=True), marker=".", label=cell)
+        ax.set_title(f"{protocol}: {backbone}")
+        ax.set_xlabel("training step")
+        ax.set_ylabel("val Err_R mean (deg)")
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return True
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("out", nargs="?", default="outputs/reproduce", type=Path)
+    parser.add_argument("--docs", default="docs/results", type=Path)
+    parser.add_argument("--figures", nargs="*", default=["rpm_ours", "rpm_cd", "rpm_gt"])
+    args = parser.parse_args(argv)
+    if not args.out.is_dir():
+        parser.error(f"{args.out} is not a folder (run scripts/reproduce.sh first)")
+    args.docs.mkdir(parents=True, exist_ok=True)
+    sections = []
+    for protocol in ("airplane", "human", "real"):
+        if not (args.out / protocol).is_dir():
+            continue
+        rows = protocol_rows(args.out, protocol)
+        if not rows:
+            continue
+        sections.append(f"### {protocol.capitalize()}\n\n{markdown(rows)}")
+        if plot_curves(args.out, protocol, args.docs / f"curves_{protocol}.png"):
+            sections[-1] += f"\n![validation curves]({args.docs.name}/curves_{protocol}.png)\n"
+        for cell in args.figures:
+            figure = args.out / protocol / f"{cell}_s1" / "evaluation" / "figures" / "pair_0000.png"
+            if figure.is_file():
+                shutil.copyfile(figure, args.docs / f"figure_{protocol}_{cell}.png")
+    text = "\n".join(sections)
+    (args.docs / "tables.md").write_text(text)
+    print(text)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

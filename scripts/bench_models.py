@@ -184,8 +184,9 @@ def main() -> None:
         f"{where}, {torch.get_num_threads()} threads, torch {torch.__version__}, "
         f"{args.points} points, median of {args.repeats}\n"
     )
-    print("| model | batch | parameters | forward ms/pair | train step ms/pair | peak MB forward "
-          "| peak MB train step |")
+    print(
+        "| model | batch | parameters | forward ms/pair | train step ms/pair | peak MB forward | peak MB train step |"
+    )
     print("| --- | --- | --- | --- | --- | --- | --- |")
     for name in args.models:
         torch.manual_seed(0)

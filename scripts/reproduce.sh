@@ -30,6 +30,7 @@ cell() {
   fi
   local extra=()
   [[ $experiment == rpm_* ]] && extra+=(model.num_neighbors=16)
+  [[ $experiment == dcp_* ]] && extra+=(model.emb_dims=256 model.ff_dims=512)
   [[ $experiment == *_ours ]] && extra+=(loss.num_lines=5000)
   [[ -d $dir/checkpoints ]] && extra+=(resume=true)
   echo "run: $dir"

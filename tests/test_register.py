@@ -77,6 +77,14 @@ def test_multi_start_escapes_the_local_minimum_of_a_single_start():
     assert err_r(multi.transform, T, src) < 1.0 and multi.info["start"] != 0
 
 
+def test_registration_is_deterministic_given_the_seed():
+    src = surface(500, 4)
+    tgt = apply(pose([30, 20, -10], [0.1, 0.0, 0.2]), surface(500, 4))
+    first, second = (build_method({**FAST_ADAM, "seed": 3})(src, tgt) for _ in range(2))
+    np.testing.assert_array_equal(first.transform, second.transform)
+    assert first.info["start"] == second.info["start"]
+
+
 def test_start_poses():
     poses = start_poses(7, 90.0)
     assert poses.shape == (7, 4, 4)

@@ -11,7 +11,10 @@ metrics.json`` (a model evaluated without fine-tuning), and writes into ``--docs
   median Err_R and the wall-clock time of each cell;
 * ``curves_<protocol>.png``: validation Err_R during training (the scalars TensorBoard shows,
   read from each run's ``scalars.jsonl``), one panel per backbone;
-* ``figure_<protocol>_<cell>.png``: before/after views of the first test pair of a few runs.
+* ``figure_<protocol>_<cell>.png``: before/after views of the first test pair of a few runs;
+
+and replaces the text between ``<!-- tables:begin -->`` and ``<!-- tables:end -->`` in
+``--page`` (default ``docs/results.md``) with the tables.
 """
 
 from __future__ import annotations
@@ -192,6 +195,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("out", nargs="?", default="outputs/reproduce", type=Path)
     parser.add_argument("--docs", default="docs/results", type=Path)
     parser.add_argument("--figures", nargs="*", default=["rpm_ours", "rpm_cd", "rpm_gt"])
+    parser.add_argument("--page", default="docs/results.md", type=Path)
     args = parser.parse_args(argv)
     if not args.out.is_dir():
         parser.error(f"{args.out} is not a folder (run scripts/reproduce.sh first)")
@@ -209,11 +213,27 @@ def main(argv: list[str] | None = None) -> int:
         for cell in args.figures:
             figure = args.out / protocol / f"{cell}_s1" / "evaluation" / "figures" / "pair_0000.png"
             if figure.is_file():
-                shutil.copyfile(figure, args.docs / f"figure_{protocol}_{cell}.png")
+                name = f"figure_{protocol}_{cell}.png"
+                shutil.copyfile(figure, args.docs / name)
+                sections[-1] += f"\n{cell}, first test pair:\n\n![{cell}]({args.docs.name}/{name})\n"
     text = "\n".join(sections)
     (args.docs / "tables.md").write_text(text)
+    if args.page.is_file():
+        fill_page(args.page, text, args.docs.resolve().relative_to(args.page.parent.resolve()))
     print(text)
     return 0
+
+
+def fill_page(page: Path, tables: str, docs: Path) -> None:
+    """Replace the marked region of ``page`` with ``tables`` (figure links relative to the page)."""
+    begin, end = "<!-- tables:begin -->", "<!-- tables:end -->"
+    content = page.read_text()
+    if begin not in content or end not in content:
+        raise ValueError(f"{page} has no {begin} ... {end} region to fill")
+    head, rest = content.split(begin, 1)
+    tail = rest.split(end, 1)[1]
+    tables = re.sub(r"\]\([^/)]+/", f"]({docs.as_posix()}/", tables)
+    page.write_text(f"{head}{begin}\n{tables}\n{end}{tail}")
 
 
 if __name__ == "__main__":

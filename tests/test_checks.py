@@ -26,22 +26,16 @@ class TestCheckPoints:
         check_points(points)
 
     def test_not_an_array(self):
-        with pytest.raises(
-            TypeError, match=r"src must be a torch\.Tensor or numpy array, got list"
-        ):
+        with pytest.raises(TypeError, match=r"src must be a torch\.Tensor or numpy array, got list"):
             check_points([[0.0, 0.0, 0.0]], "src")
 
-    @pytest.mark.parametrize(
-        "points", [torch.zeros(5, 3, dtype=torch.long), np.zeros((5, 3), dtype=np.int32)]
-    )
+    @pytest.mark.parametrize("points", [torch.zeros(5, 3, dtype=torch.long), np.zeros((5, 3), dtype=np.int32)])
     def test_non_float(self, points):
         with pytest.raises(TypeError, match="src must have a floating-point dtype, got"):
             check_points(points, "src")
 
     def test_wrong_last_axis(self):
-        with pytest.raises(
-            ValueError, match=r"src must have shape \(N, 3\) or \(B, N, 3\), got \(5, 2\)"
-        ):
+        with pytest.raises(ValueError, match=r"src must have shape \(N, 3\) or \(B, N, 3\), got \(5, 2\)"):
             check_points(torch.zeros(5, 2), "src")
 
     def test_wrong_rank(self):
@@ -56,9 +50,7 @@ class TestCheckPoints:
 
     def test_other_dimension(self):
         check_points(torch.zeros(5, 6), dim=6)
-        with pytest.raises(
-            ValueError, match=r"must have shape \(N, 6\) or \(B, N, 6\), got \(5, 3\)"
-        ):
+        with pytest.raises(ValueError, match=r"must have shape \(N, 6\) or \(B, N, 6\), got \(5, 3\)"):
             check_points(torch.zeros(5, 3), dim=6)
 
     def test_empty(self):
@@ -84,9 +76,7 @@ class TestCheckTransform:
         check_transform(np.eye(4), rigid_atol=1e-9)
 
     def test_not_an_array(self):
-        with pytest.raises(
-            TypeError, match=r"T_pred must be a torch\.Tensor or numpy array, got tuple"
-        ):
+        with pytest.raises(TypeError, match=r"T_pred must be a torch\.Tensor or numpy array, got tuple"):
             check_transform((1, 2), "T_pred")
 
     @pytest.mark.parametrize("shape", [(3, 4), (4,), (2, 4, 3)])
@@ -106,9 +96,7 @@ class TestCheckTransform:
     def test_non_rigid(self):
         scaled = torch.eye(4)
         scaled[:3, :3] *= 2.0
-        with pytest.raises(
-            ValueError, match=r"T_pred is not a rigid transform: max \|R\^T R - I\| = 3\.00e\+00"
-        ):
+        with pytest.raises(ValueError, match=r"T_pred is not a rigid transform: max \|R\^T R - I\| = 3\.00e\+00"):
             check_transform(scaled, "T_pred", rigid_atol=1e-6)
         reflection = torch.diag(torch.tensor([1.0, 1.0, -1.0, 1.0]))
         with pytest.raises(ValueError, match=r"det R = \[-1\.\]"):

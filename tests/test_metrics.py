@@ -27,9 +27,7 @@ class TestRotationError:
     @pytest.mark.parametrize("angle", [0.0, 1.0, 45.0, 90.0, 179.0, 180.0])
     def test_about_z(self, angle):
         error = metrics.rotation_error_deg(_rz(angle), torch.eye(3, dtype=torch.float64))
-        torch.testing.assert_close(
-            error, torch.tensor(angle, dtype=torch.float64), atol=1e-9, rtol=0
-        )
+        torch.testing.assert_close(error, torch.tensor(angle, dtype=torch.float64), atol=1e-9, rtol=0)
 
     def test_relative_to_ground_truth(self):
         R_gt = random_poses.random_rotation(5, 0, dtype=torch.float64)
@@ -46,9 +44,7 @@ class TestRotationError:
         torch.testing.assert_close(error, torch.tensor(0.01), atol=1e-5, rtol=0)
 
     def test_exception(self):
-        with pytest.raises(
-            ValueError, match=r"R_gt must have shape \(\.\.\., 3, 3\), got \(4, 4\)"
-        ):
+        with pytest.raises(ValueError, match=r"R_gt must have shape \(\.\.\., 3, 3\), got \(4, 4\)"):
             metrics.rotation_error_deg(torch.eye(3), torch.eye(4))
 
 
@@ -63,9 +59,7 @@ class TestTranslationError:
         t = torch.zeros(2, 3, 3)
         t_gt = torch.ones(2, 3, 3)
         assert metrics.translation_error(t, t_gt, "l1").shape == (2, 3)
-        torch.testing.assert_close(
-            metrics.translation_error(t, t_gt, "l1"), torch.full((2, 3), 3.0)
-        )
+        torch.testing.assert_close(metrics.translation_error(t, t_gt, "l1"), torch.full((2, 3), 3.0))
 
     def test_unknown_norm(self):
         with pytest.raises(ValueError, match=r"norm must be one of \('l1', 'l2'\), got 'linf'"):
@@ -97,12 +91,8 @@ class TestPointwiseError:
             metrics.pointwise_error(T_pred, T_gt, points, "l2"),
             torch.tensor([math.sqrt(2)], dtype=torch.float64),
         )
-        expected_l1 = (
-            (angles.cos() + angles.sin()).abs() + (angles.sin() - angles.cos()).abs()
-        ).mean()
-        torch.testing.assert_close(
-            metrics.pointwise_error(T_pred, T_gt, points, "l1"), expected_l1[None]
-        )
+        expected_l1 = ((angles.cos() + angles.sin()).abs() + (angles.sin() - angles.cos()).abs()).mean()
+        torch.testing.assert_close(metrics.pointwise_error(T_pred, T_gt, points, "l1"), expected_l1[None])
 
     def test_lengths_ignore_padding(self):
         T_gt = torch.eye(4, dtype=torch.float64).expand(2, 4, 4)
@@ -130,22 +120,12 @@ class TestRegistrationErrors:
         src = torch.tensor([[[0.0, 0.0, 1.0], [0.0, 0.0, -1.0]]])
         errors = metrics.registration_errors(T_pred, T_gt, src)
         assert set(errors) == set(metrics.ERROR_KEYS)
-        assert all(
-            value.dtype == torch.float64 and value.shape == (1,) for value in errors.values()
-        )
-        torch.testing.assert_close(
-            errors["err_r_deg"], torch.tensor([90.0], dtype=torch.float64), atol=1e-5, rtol=0
-        )
-        torch.testing.assert_close(
-            errors["err_t_l1"], torch.tensor([0.3], dtype=torch.float64), atol=1e-7, rtol=0
-        )
-        torch.testing.assert_close(
-            errors["err_t_l2"], torch.tensor([0.3], dtype=torch.float64), atol=1e-7, rtol=0
-        )
+        assert all(value.dtype == torch.float64 and value.shape == (1,) for value in errors.values())
+        torch.testing.assert_close(errors["err_r_deg"], torch.tensor([90.0], dtype=torch.float64), atol=1e-5, rtol=0)
+        torch.testing.assert_close(errors["err_t_l1"], torch.tensor([0.3], dtype=torch.float64), atol=1e-7, rtol=0)
+        torch.testing.assert_close(errors["err_t_l2"], torch.tensor([0.3], dtype=torch.float64), atol=1e-7, rtol=0)
         # Points on the z axis are fixed by the rotation: only the translation difference remains.
-        torch.testing.assert_close(
-            errors["err_pw_l2"], torch.tensor([0.3], dtype=torch.float64), atol=1e-7, rtol=0
-        )
+        torch.testing.assert_close(errors["err_pw_l2"], torch.tensor([0.3], dtype=torch.float64), atol=1e-7, rtol=0)
 
     def test_perfect_prediction(self):
         T = random_poses.random_transform_paper(3, 0)
@@ -156,9 +136,7 @@ class TestRegistrationErrors:
     def test_validation(self):
         T = torch.eye(4).expand(2, 4, 4)
         with pytest.raises(ValueError, match="T_pred contains NaN or Inf"):
-            metrics.registration_errors(
-                torch.full((2, 4, 4), float("nan")), T, torch.zeros(2, 5, 3)
-            )
+            metrics.registration_errors(torch.full((2, 4, 4), float("nan")), T, torch.zeros(2, 5, 3))
         with pytest.raises(ValueError, match="T_pred and src must share the batch size"):
             metrics.registration_errors(T, T, torch.zeros(3, 5, 3))
         with pytest.raises(ValueError, match=r"src must have shape \(B, N, 3\)"):
@@ -171,18 +149,14 @@ class TestSummaries:
     def test_alpha_recall(self):
         errors = torch.tensor([0.01, 0.02, 0.05, 0.2])
         recall = metrics.alpha_recall(errors, torch.tensor([0.0, 0.015, 0.05, 0.1, 1.0]))
-        torch.testing.assert_close(
-            recall, torch.tensor([0.0, 0.25, 0.5, 0.75, 1.0], dtype=torch.float64)
-        )
+        torch.testing.assert_close(recall, torch.tensor([0.0, 0.25, 0.5, 0.75, 1.0], dtype=torch.float64))
 
     def test_alpha_recall_numpy(self):
         recall = metrics.alpha_recall(np.array([0.1, 0.3]), np.array([0.2]))
         torch.testing.assert_close(recall, torch.tensor([0.5], dtype=torch.float64))
 
     def test_alpha_recall_exception(self):
-        with pytest.raises(
-            ValueError, match=r"err_pw_l2 must have shape \(P,\) with P >= 1, got \(0,\)"
-        ):
+        with pytest.raises(ValueError, match=r"err_pw_l2 must have shape \(P,\) with P >= 1, got \(0,\)"):
             metrics.alpha_recall(torch.zeros(0), torch.ones(2))
 
     def test_summarize(self):
@@ -213,10 +187,7 @@ class TestSummaries:
         }
         table = metrics.paper_table({"Ours": summary, "ICP": {**summary, "err_r_deg_mean": 10.015}})
         lines = table.splitlines()
-        assert (
-            lines[0]
-            == "| Method | Err_R (deg) | Err_t (x10^-1) (l1, l2) | Err_pw (x10^-1) (l1, l2) |"
-        )
+        assert lines[0] == "| Method | Err_R (deg) | Err_t (x10^-1) (l1, l2) | Err_pw (x10^-1) (l1, l2) |"
         assert lines[2] == "| Ours | 0.576 | 0.017, 0.013 | 0.018, 0.015 |"
         assert lines[3].startswith("| ICP | 10.015 |")
         assert len(lines) == 4
@@ -237,10 +208,6 @@ class TestSummaries:
     def test_end_to_end(self):
         T_gt = random_poses.random_transform_paper(6, 0, dtype=torch.float64)
         T_pred = se3.compose(se3.se3_exp(0.01 * torch.randn(6, 6, dtype=torch.float64)), T_gt)
-        summary = metrics.summarize(
-            metrics.registration_errors(T_pred, T_gt, torch.randn(6, 50, 3))
-        )
-        assert set(summary) == {
-            f"{key}_{stat}" for key in metrics.ERROR_KEYS for stat in ("mean", "median")
-        }
+        summary = metrics.summarize(metrics.registration_errors(T_pred, T_gt, torch.randn(6, 50, 3)))
+        assert set(summary) == {f"{key}_{stat}" for key in metrics.ERROR_KEYS for stat in ("mean", "median")}
         assert "| run |" in metrics.paper_table({"run": summary})

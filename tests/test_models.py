@@ -187,9 +187,7 @@ class TestContract:
             batch.src_normals.flip(1),
             batch.tgt_normals.roll(5, dims=1),
         )
-        torch.testing.assert_close(
-            model(shuffled).transform, model(batch).transform, atol=2e-4, rtol=0
-        )
+        torch.testing.assert_close(model(shuffled).transform, model(batch).transform, atol=2e-4, rtol=0)
 
     def test_gradients_reach_every_parameter(self, name):
         model = small_model(name).train()
@@ -254,17 +252,13 @@ class TestConsistency:
         torch.testing.assert_close(output.extras["transform_reverse"], inverse(output.transform))
         same = PairBatch(batch.src_xyz, batch.src_xyz.clone())
         cyclic = small_model("dcp_v1", cycle=True).eval()(same)
-        torch.testing.assert_close(
-            cyclic.extras["transform_reverse"], cyclic.transform, atol=1e-5, rtol=0
-        )
+        torch.testing.assert_close(cyclic.extras["transform_reverse"], cyclic.transform, atol=1e-5, rtol=0)
 
     def test_rpmnet_transforms_follow_from_reported_matches(self):
         batch = make_pair(2, 64)
         output = small_model("rpmnet").eval()(batch)
         for T, perm in zip(output.transforms, output.extras["perm_matrices"], strict=True):
-            refit = soft_correspondence_transform(
-                batch.src_xyz, batch.tgt_xyz, perm, weighted=True, model_name="test"
-            )
+            refit = soft_correspondence_transform(batch.src_xyz, batch.tgt_xyz, perm, weighted=True, model_name="test")
             torch.testing.assert_close(T, refit)
             assert (perm >= 0).all() and (perm.sum(1) <= 1 + 1e-5).all()
             assert (perm.sum(2) <= 1 + 1e-5).all()

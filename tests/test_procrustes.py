@@ -17,9 +17,7 @@ TOL = {torch.float32: 1e-5, torch.float64: 1e-12}
 
 def _problem(batch_size: int = 4, num_points: int = 64, dtype=torch.float64, seed: int = 0):
     generator = torch.Generator().manual_seed(seed)
-    T = random_poses.random_transform_paper(
-        batch_size, seed, max_angle_deg=90.0, dtype=torch.float64
-    )
+    T = random_poses.random_transform_paper(batch_size, seed, max_angle_deg=90.0, dtype=torch.float64)
     src = torch.randn(batch_size, num_points, 3, generator=generator, dtype=torch.float64)
     tgt = se3.transform_points(T, src)
     return src.to(dtype), tgt.to(dtype), T.to(dtype)
@@ -61,13 +59,9 @@ class TestRecovery:
 
     def test_approximate_with_noise(self):
         src, tgt, T = _problem(num_points=500)
-        noisy = tgt + 0.01 * torch.randn(
-            tgt.shape, generator=torch.Generator().manual_seed(1), dtype=tgt.dtype
-        )
+        noisy = tgt + 0.01 * torch.randn(tgt.shape, generator=torch.Generator().manual_seed(1), dtype=tgt.dtype)
         result = _solve_quietly(src, noisy)
-        rotation_error = torch.rad2deg(
-            se3.rotation_angle(T[:, :3, :3].transpose(1, 2) @ result.transform[:, :3, :3])
-        )
+        rotation_error = torch.rad2deg(se3.rotation_angle(T[:, :3, :3].transpose(1, 2) @ result.transform[:, :3, :3]))
         assert rotation_error.max() < 0.5
         assert (result.transform[:, :3, 3] - T[:, :3, 3]).norm(dim=-1).max() < 0.01
 
@@ -185,9 +179,7 @@ class TestDegenerate:
         assert not result.valid.any()
         _assert_proper_rotations(result.transform.double(), atol=1e-5)
         # Not unique, but still optimal: the line maps onto its image.
-        torch.testing.assert_close(
-            se3.transform_points(result.transform.double(), src), tgt, atol=1e-4, rtol=0
-        )
+        torch.testing.assert_close(se3.transform_points(result.transform.double(), src), tgt, atol=1e-4, rtol=0)
 
     def test_solver_failure_falls_back_per_sample(self, monkeypatch):
         solve = roma.special_procrustes
@@ -238,9 +230,7 @@ class TestGradients:
 
 class TestValidation:
     def test_shape_mismatch(self):
-        with pytest.raises(
-            ValueError, match=r"tgt must have the shape of src \(2, 5, 3\), got \(2, 4, 3\)"
-        ):
+        with pytest.raises(ValueError, match=r"tgt must have the shape of src \(2, 5, 3\), got \(2, 4, 3\)"):
             weighted_procrustes(torch.zeros(2, 5, 3), torch.zeros(2, 4, 3))
 
     def test_unbatched(self):
@@ -248,9 +238,7 @@ class TestValidation:
             weighted_procrustes(torch.zeros(5, 3), torch.zeros(5, 3))
 
     def test_weights_shape(self):
-        with pytest.raises(
-            ValueError, match=r"weights must have shape \(B, N\) = \(2, 5\), got \(2, 4\)"
-        ):
+        with pytest.raises(ValueError, match=r"weights must have shape \(B, N\) = \(2, 5\), got \(2, 4\)"):
             weighted_procrustes(torch.zeros(2, 5, 3), torch.zeros(2, 5, 3), torch.ones(2, 4))
 
     def test_types(self):

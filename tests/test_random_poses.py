@@ -39,9 +39,7 @@ class TestEulerTransforms:
         max_angle, max_translation = ranges.values()
         assert T.shape == (2000, 4, 4)
         _assert_rotations(T[:, :3, :3], atol=1e-12)
-        torch.testing.assert_close(
-            T[:, 3], torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=torch.float64).expand(2000, 4)
-        )
+        torch.testing.assert_close(T[:, 3], torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=torch.float64).expand(2000, 4))
         angles = torch.rad2deg(_euler_xyz_angles(T[:, :3, :3]))
         assert angles.min() >= -1e-9 and angles.max() <= max_angle + 1e-9
         # Each range is covered (not a constant or a narrower interval).
@@ -73,9 +71,7 @@ ALL_SAMPLERS = [
     lambda n, g, **kw: random_poses.random_transform_paper(n, g, **kw),
     lambda n, g, **kw: random_poses.random_transform_rpmnet(n, g, **kw),
     lambda n, g, **kw: random_poses.random_rotation(n, g, **kw),
-    lambda n, g, **kw: random_poses.random_axis_angle_rotation(
-        n, g, min_angle_deg=-75.0, max_angle_deg=75.0, **kw
-    ),
+    lambda n, g, **kw: random_poses.random_axis_angle_rotation(n, g, min_angle_deg=-75.0, max_angle_deg=75.0, **kw),
 ]
 
 
@@ -145,9 +141,7 @@ class TestRandomRotation:
         assert R.mean(0).abs().max() < 0.03
         angles = se3.rotation_angle(R)
         assert abs(angles.mean().item() - (math.pi / 2 + 2 / math.pi)) < 0.02
-        assert (
-            abs((angles < math.pi / 2).double().mean().item() - (math.pi / 2 - 1) / math.pi) < 0.01
-        )
+        assert abs((angles < math.pi / 2).double().mean().item() - (math.pi / 2 - 1) / math.pi) < 0.01
 
 
 class TestAxisAngleRotation:

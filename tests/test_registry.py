@@ -68,9 +68,7 @@ def test_metadata(registry):
     assert registry.metadata("line_intersection") == {"needs_gt": False, "paper": True}
     assert registry.metadata("supervised_mse")["needs_gt"] is True
     registry.metadata("chamfer")["needs_gt"] = True
-    assert registry.metadata("chamfer") == {"needs_gt": False}, (
-        "metadata must be returned as a copy"
-    )
+    assert registry.metadata("chamfer") == {"needs_gt": False}, "metadata must be returned as a copy"
     with pytest.raises(KeyError, match="unknown loss 'nope'"):
         registry.metadata("nope")
 

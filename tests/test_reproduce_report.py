@@ -35,8 +35,11 @@ def test_report_tables_curves_and_figures(tmp_path, capsys):
     baselines.mkdir()
     summary = {f"{key}_mean": 0.5 for key in KEYS} | {"err_r_deg_median": 0.25, "seconds_mean": 0.01}
     (baselines / "results.json").write_text(json.dumps({"summary": {"icp_point": summary}}))
-    docs = tmp_path / "docs"
-    assert reproduce_report.main([str(out), "--docs", str(docs)]) == 0
+    docs = tmp_path / "docs" / "results"
+    page = tmp_path / "docs" / "results.md"
+    page.parent.mkdir()
+    page.write_text("# Results\n\nintro\n<!-- tables:begin -->\nold\n<!-- tables:end -->\n\noutro\n")
+    assert reproduce_report.main([str(out), "--docs", str(docs), "--page", str(page)]) == 0
     table = (docs / "tables.md").read_text()
     assert table.startswith("### Airplane") and "rpm_ours" in capsys.readouterr().out
     lines = [line for line in table.splitlines() if line.startswith("| ")]
@@ -49,3 +52,7 @@ def test_report_tables_curves_and_figures(tmp_path, capsys):
     assert icp[2].strip() == "0.500" and icp[3].strip() == "5.000, 5.000" and icp[6].strip() == "7.223"
     assert (docs / "curves_airplane.png").stat().st_size > 1000
     assert (docs / "figure_airplane_rpm_ours.png").read_bytes() == b"png"
+    filled = page.read_text()
+    assert filled.startswith("# Results\n\nintro\n<!-- tables:begin -->\n### Airplane") and "old" not in filled
+    assert filled.endswith("<!-- tables:end -->\n\noutro\n") and "](results/curves_airplane.png)" in filled
+    assert "](results/figure_airplane_rpm_ours.png)" in filled

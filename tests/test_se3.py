@@ -45,9 +45,7 @@ def _rz(a: float) -> torch.Tensor:
 def _assert_rotation(R: torch.Tensor, atol: float) -> None:
     eye = torch.eye(3, dtype=R.dtype).expand_as(R)
     torch.testing.assert_close(R.transpose(-1, -2) @ R, eye, atol=atol, rtol=0)
-    torch.testing.assert_close(
-        torch.linalg.det(R), torch.ones(R.shape[:-2], dtype=R.dtype), atol=atol, rtol=0
-    )
+    torch.testing.assert_close(torch.linalg.det(R), torch.ones(R.shape[:-2], dtype=R.dtype), atol=atol, rtol=0)
 
 
 class TestSo3:
@@ -60,10 +58,7 @@ class TestSo3:
         torch.testing.assert_close(se3.so3_log(R), omega, atol=10 * TOL[dtype], rtol=0)
 
     def test_matches_scipy(self):
-        omega = (
-            _random_axes(10, torch.float64)
-            * torch.linspace(0.1, 3.0, 10, dtype=torch.float64)[:, None]
-        )
+        omega = _random_axes(10, torch.float64) * torch.linspace(0.1, 3.0, 10, dtype=torch.float64)[:, None]
         expected = torch.from_numpy(Rotation.from_rotvec(omega.numpy()).as_matrix())
         torch.testing.assert_close(se3.so3_exp(omega), expected, atol=1e-12, rtol=0)
 
@@ -83,9 +78,7 @@ class TestSo3:
         assert se3.so3_exp(torch.randn(3)).shape == (3, 3)
 
     def test_gradcheck_log(self):
-        omega = _random_axes(4, torch.float64) * torch.tensor(
-            [[0.3], [1.0], [2.0], [2.9]], dtype=torch.float64
-        )
+        omega = _random_axes(4, torch.float64) * torch.tensor([[0.3], [1.0], [2.0], [2.9]], dtype=torch.float64)
         R = se3.so3_exp(omega).requires_grad_()
         assert torch.autograd.gradcheck(se3.so3_log, (R,))
 
@@ -121,9 +114,7 @@ class TestSe3ExpLog:
         theta = math.pi / 2
         xi = torch.tensor([0.0, 0.0, theta, 1.0, 0.0, 0.0], dtype=torch.float64)
         T = se3.se3_exp(xi)
-        expected_t = torch.tensor(
-            [math.sin(theta) / theta, (1 - math.cos(theta)) / theta, 0.0], dtype=torch.float64
-        )
+        expected_t = torch.tensor([math.sin(theta) / theta, (1 - math.cos(theta)) / theta, 0.0], dtype=torch.float64)
         torch.testing.assert_close(T[:3, 3], expected_t, atol=1e-14, rtol=0)
         torch.testing.assert_close(T[:3, :3], _rz(theta), atol=1e-14, rtol=0)
         torch.testing.assert_close(T[3], torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=torch.float64))
@@ -136,9 +127,7 @@ class TestSe3ExpLog:
 
     def test_series_and_closed_form_agree_at_threshold(self):
         # Both sides of the Taylor switch (theta^2 = 1e-3) give the same exponential.
-        angles = torch.tensor(
-            [math.sqrt(1e-3) * (1 - 1e-9), math.sqrt(1e-3) * (1 + 1e-9)], dtype=torch.float64
-        )
+        angles = torch.tensor([math.sqrt(1e-3) * (1 - 1e-9), math.sqrt(1e-3) * (1 + 1e-9)], dtype=torch.float64)
         xi = torch.cat(
             (
                 angles[:, None] * torch.tensor([[0.0, 0.6, 0.8]], dtype=torch.float64),
@@ -215,15 +204,9 @@ class TestMatrixHelpers:
         T_ab = se3.se3_exp(_twists(1.0, dtype, n=4, seed=1))
         T_bc = se3.se3_exp(_twists(2.0, dtype, n=4, seed=2))
         eye = torch.eye(4, dtype=dtype).expand(4, 4, 4)
-        torch.testing.assert_close(
-            se3.compose(T_ab, se3.inverse(T_ab)), eye, atol=10 * TOL[dtype], rtol=0
-        )
-        torch.testing.assert_close(
-            se3.compose(se3.inverse(T_ab), T_ab), eye, atol=10 * TOL[dtype], rtol=0
-        )
-        torch.testing.assert_close(
-            se3.inverse(T_ab), torch.linalg.inv(T_ab), atol=10 * TOL[dtype], rtol=0
-        )
+        torch.testing.assert_close(se3.compose(T_ab, se3.inverse(T_ab)), eye, atol=10 * TOL[dtype], rtol=0)
+        torch.testing.assert_close(se3.compose(se3.inverse(T_ab), T_ab), eye, atol=10 * TOL[dtype], rtol=0)
+        torch.testing.assert_close(se3.inverse(T_ab), torch.linalg.inv(T_ab), atol=10 * TOL[dtype], rtol=0)
         T_ac = se3.compose(T_ab, T_bc)
         torch.testing.assert_close(
             se3.inverse(T_ac),
@@ -263,9 +246,7 @@ class TestTransformPoints:
         assert se3.transform_points(T[0], torch.randn(4, 5, 3)).shape == (4, 5, 3)
         batched = se3.transform_points(T[:, None], torch.randn(2, 3, 5, 3))
         assert batched.shape == (2, 3, 5, 3)
-        torch.testing.assert_close(
-            se3.transform_points(T, single_cloud)[1], se3.transform_points(T[1], single_cloud)
-        )
+        torch.testing.assert_close(se3.transform_points(T, single_cloud)[1], se3.transform_points(T[1], single_cloud))
 
     def test_empty_point_set(self):
         points = torch.zeros(2, 0, 3)
@@ -287,9 +268,7 @@ class TestTransformPoints:
     def test_exception(self):
         with pytest.raises(ValueError, match=r"points must have shape \(\.\.\., 3\), got \(5, 2\)"):
             se3.transform_points(torch.eye(4), torch.zeros(5, 2))
-        with pytest.raises(
-            ValueError, match=r"points must have shape \(\.\.\., N, 3\), got \(3,\)"
-        ):
+        with pytest.raises(ValueError, match=r"points must have shape \(\.\.\., N, 3\), got \(3,\)"):
             se3.transform_points(torch.eye(4), torch.zeros(3))
         with pytest.raises(ValueError, match=r"T must have shape \(\.\.\., 4, 4\), got \(3, 4\)"):
             se3.transform_points(torch.zeros(3, 4), torch.zeros(5, 3))
@@ -321,9 +300,7 @@ class TestEuler:
 
 class TestRotationAngle:
     @pytest.mark.parametrize("dtype", DTYPES)
-    @pytest.mark.parametrize(
-        "angle", [0.0, 1e-7, 1e-3, 0.5, math.pi / 2, 3.0, math.pi - 1e-5, math.pi]
-    )
+    @pytest.mark.parametrize("angle", [0.0, 1e-7, 1e-3, 0.5, math.pi / 2, 3.0, math.pi - 1e-5, math.pi])
     def test_values(self, dtype, angle):
         omega = _random_axes(8, torch.float64) * angle
         R = se3.so3_exp(omega).to(dtype)

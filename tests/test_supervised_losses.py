@@ -32,9 +32,7 @@ def _batch(with_gt: bool = True) -> PairBatch:
     return PairBatch(src, tgt, gt_transform=T if with_gt else None)
 
 
-def _output(
-    batch: PairBatch, transform: torch.Tensor, *, iterations: int = 2
-) -> RegistrationOutput:
+def _output(batch: PairBatch, transform: torch.Tensor, *, iterations: int = 2) -> RegistrationOutput:
     """A model output carrying every extra the losses read, all consistent with ``transform``."""
     perm = torch.eye(NUM_POINTS).expand(2, NUM_POINTS, NUM_POINTS)
     reconstructions = [(cloud, cloud.clone()) for cloud in (batch.src_xyz, batch.tgt_xyz)]

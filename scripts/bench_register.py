@@ -28,7 +28,7 @@ from train.benchmark import build_pairs
 from train.methods import build_method
 
 METHODS = {
-    "register default (7 starts)": {"name": "adam_loss", "stages": "default"},
+    "register default (4 starts)": {"name": "adam_loss", "stages": "default"},
     "register default, 1 start": {"name": "adam_loss", "stages": "default", "starts": 1},
     "paper solver": {"name": "adam_loss", "stages": "paper", "starts": 1},
     "icp_point (Open3D)": {"name": "icp_point"},

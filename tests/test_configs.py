@@ -176,3 +176,38 @@ def test_evaluate_config_composes_with_a_dataset():
     assert cfg.dataset.categories == "airplane"
     assert dataset_config(cfg.dataset, "test")["protocol"]["num_points"] == 256
     assert compose_config("evaluate", overrides=["checkpoint=x.pt"]).get("dataset") is None
+
+
+REPRODUCE = sorted(p.stem for p in (CONFIGS / "reproduce").glob("*.yaml"))
+
+
+@pytest.mark.parametrize("reproduce", REPRODUCE)
+@pytest.mark.parametrize("experiment", ["rpm_ours", "dcp_cd", "fmr_gt"])
+def test_reproduce_scale_wins_over_the_experiment(reproduce, experiment):
+    """``reproduce=...`` (scripts/reproduce.sh) sets one scale for every cell of a table."""
+    cfg = compose_config(overrides=[f"experiment={experiment}", f"reproduce={reproduce}"])
+    task_name = OmegaConf.to_container(cfg, resolve=False)["task_name"]
+    assert task_name == f"${{hydra:runtime.choices.experiment}}_{reproduce}"  # resolved in a Hydra run
+    assert cfg.trainer.num_points == 256 and cfg.trainer.threads == 1 and cfg.trainer.device == "cpu"
+    assert cfg.optimizer.lr == pytest.approx(1e-4)
+    assert set(cfg.curriculum.stages) == {"easy", "subset", "full"}
+    assert cfg.dataset.name == {"airplane": "modelnet40", "human": "mesh_folder", "real": "rgbd_sequence"}.get(
+        reproduce, "procedural"
+    )
+    build_components(cfg)
+
+
+def test_reproduce_splits_on_the_shared_data(shared_data):
+    """Pair counts of docs/results.md: held-out shapes, held-out views, a split in time."""
+    from datasets import build_dataset
+
+    expected = {"airplane": (864, 216), "human": (120, 30), "real": (190, 40)}
+    for reproduce, counts in expected.items():
+        cfg = compose_config(overrides=["experiment=rpm_ours", f"reproduce={reproduce}"])
+        dataset = OmegaConf.to_container(cfg.dataset, resolve=True)
+        sizes = []
+        for split in ("train", "test"):
+            config = dataset_config(dataset, split)
+            config.pop("cache_dir")
+            sizes.append(len(build_dataset(config)))
+        assert tuple(sizes) == counts, reproduce

@@ -67,6 +67,8 @@ for seed in $SEEDS; do
             cell real "${backbone}_$loss" "${backbone}_$loss" "$seed"
           done
         done
+        # The paper's loss with a fixed Welsch scale instead of nu0 * median (docs/results.md).
+        cell real rpm_ours_fixed_nu rpm_ours "$seed" +loss.terms.alignment.nu=0.25
         baselines real "$OUT/real/rpm_ours_s$seed"
         ;;
       finetune)

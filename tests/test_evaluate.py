@@ -112,6 +112,15 @@ def test_benchmark_pairs_of_a_run_are_its_test_pairs(trained_run):
     assert len(run_pairs(run=str(run_dir), split="val", pairs=1)) == 1
 
 
+def test_loss_at_gt_script_counts_pairs_per_loss(trained_run, capsys):
+    from scripts import loss_at_gt
+
+    run_dir, _ = trained_run
+    assert loss_at_gt.main([str(run_dir), "--lines", "500"]) == 0
+    rows = [line for line in capsys.readouterr().out.splitlines() if line.startswith("| ") and " of 2 |" in line]
+    assert len(rows) == 4 and rows[2].startswith("| chamfer (CD) |")
+
+
 def test_report_of_unlabelled_data():
     text = report("model", Evaluation(num_pairs=3, losses={"loss": 0.25}), [0.1])
     assert text == "3 pairs without ground truth: no registration errors; mean loss 0.25."

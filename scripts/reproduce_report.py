@@ -74,7 +74,7 @@ SCALE = (1.0, 10.0, 10.0, 10.0, 10.0)  # the paper prints Err_t and Err_pw x 10^
 ROW_ORDER = (
     ["icp_point", "icp_plane", "fricp", "fgr"]
     + [f"{b}_{loss}" for b in ("dcp", "fmr", "rpm") for loss in ("gt", "cd", "ours")]
-    + ["rpm_gt_procedural", "rpm_gt_finetuned"]
+    + ["rpm_ours_fixed_nu", "rpm_gt_procedural", "rpm_gt_finetuned"]
 )
 CELL = re.compile(r"(?P<cell>.+)_s(?P<seed>\d+)$")
 

@@ -209,7 +209,8 @@ def main(argv: list[str] | None = None) -> int:
             continue
         sections.append(f"### {protocol.capitalize()}\n\n{markdown(rows)}")
         if plot_curves(args.out, protocol, args.docs / f"curves_{protocol}.png"):
-            sections[-1] += f"\nValidation Err_R during training (first seed):\n\n![validation curves]({args.docs.name}/curves_{protocol}.png)\n"
+            curves = f"{args.docs.name}/curves_{protocol}.png"
+            sections[-1] += f"\nValidation Err_R during training (first seed):\n\n![validation curves]({curves})\n"
         for cell in args.figures:
             figure = args.out / protocol / f"{cell}_s1" / "evaluation" / "figures" / "pair_0000.png"
             if figure.is_file():

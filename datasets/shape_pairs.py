@@ -38,7 +38,6 @@ class ShapePairDataset(PairDataset):
         name: registry name recorded in metadata and cache folder names.
         shape_cache_size: renderers kept per process.
         views: the protocol's view indices to use (a held-out-views split); ``None``: all.
-        split: split name that picks the random stream; ``None``: the shape source's split.
     """
 
     def __init__(
@@ -50,7 +49,6 @@ class ShapePairDataset(PairDataset):
         name: str = "shapes",
         shape_cache_size: int = 4,
         views: Sequence[int] | None = None,
-        split: str | None = None,
     ) -> None:
         if len(shapes) == 0:
             raise ValueError(f"{name}: the shape source is empty ({shapes.describe()})")
@@ -58,7 +56,6 @@ class ShapePairDataset(PairDataset):
         self.views = list(all_views) if views is None else sorted(int(v) for v in views)
         if not self.views or any(v not in all_views for v in self.views):
             raise ValueError(f"{name}: views must be a non-empty subset of 0..{protocol.pairs_per_shape - 1}")
-        self.split = shapes.split if split is None else split
         self.shapes = shapes
         self.protocol = protocol
         self.seed = seed
@@ -89,7 +86,7 @@ class ShapePairDataset(PairDataset):
         shape_index, slot = divmod(index, len(self.views))
         view = self.views[slot]
         renderer = self._renderer(shape_index)
-        split_stream = {"train": 0, "val": 1, "test": 2}.get(self.split, 3)
+        split_stream = {"train": 0, "val": 1, "test": 2}.get(self.shapes.split, 3)
         rng = item_rng(self.seed, _PAIR_STREAM, split_stream, shape_index * self.protocol.pairs_per_shape + view)
         pair = self.protocol.make_pair(renderer, view, rng)
         pair.meta = {
@@ -106,7 +103,6 @@ class ShapePairDataset(PairDataset):
             "dataset": self.registry_name,
             "shapes": self.shapes.describe(),
             "views": self.views,
-            "split": self.split,
             "protocol": protocol_settings(self.protocol),
             "seed": self.seed,
         }

@@ -11,8 +11,9 @@ Splits: ``split="all"`` keeps everything; ``"train"`` / ``"test"`` follow ``spli
 * ``"random"``: the paper's split: the (optionally first ``max_shapes``) shapes are shuffled
   with ``split_seed`` and the first ``train_fraction`` of them are train (Airplane: 625 shapes,
   500 train / 125 test; Human: 110 meshes, 100 / 10).
-* ``"views"``: every shape in both splits, its protocol views (camera stops) shuffled with
-  ``split_seed`` and the first ``train_fraction`` of them train (held-out views of few shapes).
+* ``"views"``: every shape in both splits (the shape sources keep them all), its protocol views
+  (camera stops) shuffled with ``split_seed`` and the first ``train_fraction`` of them train
+  (held-out views of few shapes; the pair dataset selects them).
 """
 
 from __future__ import annotations
@@ -137,7 +138,7 @@ class MeshFolderShapes:
             items = items[:max_shapes]
         if split != "all" and split_rule == "official":
             items = [item for item in items if split in item[1].relative_to(self.root).parts[:-1]]
-        elif split != "all":
+        elif split != "all" and split_rule == "random":
             items = random_split(items, split, train_fraction=train_fraction, split_seed=split_seed)
         if not items:
             raise ValueError(
@@ -310,20 +311,19 @@ class ModelNet40Shapes:
 def _shape_pairs(
     shapes: MeshFolderShapes | ModelNet40Shapes,
     protocol: str | Mapping[str, Any],
-    split: str,
     split_rule: str,
     train_fraction: float,
     split_seed: int,
     seed: int,
     name: str,
 ) -> ShapePairDataset:
-    """The pair dataset of a shape source; the ``"views"`` rule splits the camera stops."""
-    _check_split(split, split_rule, train_fraction)
+    """The pair dataset of a shape source; the ``"views"`` rule keeps the split's camera stops."""
     protocol = build_protocol(protocol)
-    if split_rule != "views":
-        return ShapePairDataset(shapes, protocol, seed=seed, name=name)
-    views = random_split(range(protocol.pairs_per_shape), split, train_fraction=train_fraction, split_seed=split_seed)
-    return ShapePairDataset(shapes, protocol, seed=seed, name=name, views=views, split=split)
+    views = None
+    if split_rule == "views":
+        all_views = range(protocol.pairs_per_shape)
+        views = random_split(all_views, shapes.split, train_fraction=train_fraction, split_seed=split_seed)
+    return ShapePairDataset(shapes, protocol, seed=seed, name=name, views=views)
 
 
 @DATASETS.register("mesh_folder")
@@ -340,17 +340,16 @@ def build_mesh_folder(
     seed: int = 0,
 ) -> ShapePairDataset:
     """Pairs from any folder of meshes (see :class:`MeshFolderShapes` and the protocol)."""
-    shape_split = "all" if split_rule == "views" else split
     shapes = MeshFolderShapes(
         root,
         categories=categories,
-        split=shape_split,
-        split_rule="random" if split_rule == "views" else split_rule,
+        split=split,
+        split_rule=split_rule,
         train_fraction=train_fraction,
         split_seed=split_seed,
         max_shapes=max_shapes,
     )
-    return _shape_pairs(shapes, protocol, split, split_rule, train_fraction, split_seed, seed, "mesh_folder")
+    return _shape_pairs(shapes, protocol, split_rule, train_fraction, split_seed, seed, "mesh_folder")
 
 
 @DATASETS.register("modelnet40")
@@ -368,15 +367,14 @@ def build_modelnet40(
     seed: int = 0,
 ) -> ShapePairDataset:
     """Pairs from ModelNet40 shapes (see :class:`ModelNet40Shapes` and the protocol)."""
-    shape_split = "all" if split_rule == "views" else split
     shapes = ModelNet40Shapes(
         root,
         categories=categories,
-        split=shape_split,
-        split_rule="random" if split_rule == "views" else split_rule,
+        split=split,
+        split_rule=split_rule,
         train_fraction=train_fraction,
         split_seed=split_seed,
         max_shapes=max_shapes,
         file_format=file_format,
     )
-    return _shape_pairs(shapes, protocol, split, split_rule, train_fraction, split_seed, seed, "modelnet40")
+    return _shape_pairs(shapes, protocol, split_rule, train_fraction, split_seed, seed, "modelnet40")

@@ -27,10 +27,8 @@ import statistics
 from collections import defaultdict
 from pathlib import Path
 
-import matplotlib
-
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt
+from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.figure import Figure
 
 # The paper's Tables 3-5: Err_R (deg), Err_t l1, l2 and Err_pw l1, l2 (x 10^-1).
 PAPER = {
@@ -112,6 +110,18 @@ def _fmt(values: list[float], scale: float) -> str:
     return f"{mean:.3f} ± {statistics.stdev(values) * scale:.3f}"
 
 
+def _row(cols: list[str], median_r: float, seeds: str, time: str) -> dict[str, str]:
+    """A table row from the five formatted error columns (Err_R, Err_t l1/l2, Err_pw l1/l2)."""
+    return {
+        "err_r": cols[0],
+        "err_t": f"{cols[1]}, {cols[2]}",
+        "err_pw": f"{cols[3]}, {cols[4]}",
+        "median_r": f"{median_r:.3f}",
+        "seeds": seeds,
+        "time": time,
+    }
+
+
 def protocol_rows(out: Path, protocol: str) -> list[dict[str, str]]:
     """One table row per method: our measurement, the paper's, median Err_R, seeds and time."""
     protocol_dir = out / protocol
@@ -120,26 +130,15 @@ def protocol_rows(out: Path, protocol: str) -> list[dict[str, str]]:
         metrics = [_test_metrics(run) for run in runs]
         cols = [_fmt([m[key] for m in metrics], scale) for key, scale in zip(KEYS, SCALE, strict=True)]
         times = [t for t in (_seconds(run) for run in runs) if t is not None]
-        rows[cell] = {
-            "err_r": cols[0],
-            "err_t": f"{cols[1]}, {cols[2]}",
-            "err_pw": f"{cols[3]}, {cols[4]}",
-            "median_r": f"{statistics.fmean(m['err_r_deg_median'] for m in metrics):.3f}",
-            "seeds": str(len(runs)),
-            "time": f"{statistics.fmean(times) / 60:.1f} min" if times else "",
-        }
+        median_r = statistics.fmean(m["err_r_deg_median"] for m in metrics)
+        time = f"{statistics.fmean(times) / 60:.1f} min" if times else ""
+        rows[cell] = _row(cols, median_r, str(len(runs)), time)
     baseline_file = protocol_dir / "baselines" / "results.json"
     if baseline_file.is_file():
         for method, summary in json.loads(baseline_file.read_text())["summary"].items():
             cols = [f"{summary[key] * scale:.3f}" for key, scale in zip(KEYS, SCALE, strict=True)]
-            rows[method] = {
-                "err_r": cols[0],
-                "err_t": f"{cols[1]}, {cols[2]}",
-                "err_pw": f"{cols[3]}, {cols[4]}",
-                "median_r": f"{summary['err_r_deg_median']:.3f}",
-                "seeds": "-",
-                "time": f"{summary['seconds_mean'] * 1000:.0f} ms/pair",
-            }
+            time = f"{summary['seconds_mean'] * 1000:.0f} ms/pair"
+            rows[method] = _row(cols, summary["err_r_deg_median"], "-", time)
     paper = PAPER.get(protocol, {})
     ordered = sorted(rows, key=lambda name: ROW_ORDER.index(name) if name in ROW_ORDER else len(ROW_ORDER))
     for name in ordered:
@@ -169,7 +168,9 @@ def plot_curves(out: Path, protocol: str, path: Path) -> bool:
     backbones = sorted({cell.split("_")[0] for cell in runs if (runs[cell][0] / "scalars.jsonl").is_file()})
     if not backbones:
         return False
-    fig, axes = plt.subplots(1, len(backbones), figsize=(4.2 * len(backbones), 3.4), squeeze=False)
+    fig = Figure(figsize=(4.2 * len(backbones), 3.4), layout="tight")
+    FigureCanvasAgg(fig)
+    axes = fig.subplots(1, len(backbones), squeeze=False)
     for ax, backbone in zip(axes[0], backbones, strict=True):
         for cell, cell_runs in sorted(runs.items()):
             scalars = cell_runs[0] / "scalars.jsonl"
@@ -184,9 +185,7 @@ def plot_curves(out: Path, protocol: str, path: Path) -> bool:
         ax.set_ylabel("val Err_R mean (deg)")
         ax.grid(alpha=0.3)
         ax.legend(fontsize=8)
-    fig.tight_layout()
     fig.savefig(path, dpi=110)
-    plt.close(fig)
     return True
 
 

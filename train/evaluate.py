@@ -295,6 +295,8 @@ def evaluate(cfg: DictConfig) -> dict[str, Any]:
     Returns:
         The ``metrics.json`` contents (``model``/``identity`` metrics, counts, paths).
     """
+    if cfg.get("dataset") and cfg.get("data_from"):
+        raise ValueError("give either dataset=... or data_from=..., not both")
     device = distributed.resolve_device(cfg.device)
     distributed.set_threads(cfg.threads)
     state = load_checkpoint(cfg.checkpoint)
@@ -303,8 +305,6 @@ def evaluate(cfg: DictConfig) -> dict[str, Any]:
     model.load_state_dict(state["model"])
     model.to(device)
     data_source = load_checkpoint(cfg.data_from)["config"] if cfg.get("data_from") else stored
-    if cfg.get("dataset") and cfg.get("data_from"):
-        raise ValueError("give either dataset=... or data_from=..., not both")
     with open_dict(cfg):
         if cfg.trainer.num_points is None:
             cfg.trainer.num_points = data_source["trainer"]["num_points"]

@@ -71,10 +71,12 @@ DEFAULT_SELECT: Mapping[str, Any] = {
 PAPER_STAGES: tuple[Stage, ...] = (Stage(loss={"name": "line_intersection"}, iterations=500, lr=0.02),)
 
 
-def _subsample(points: np.ndarray, num_points: int | None) -> np.ndarray:
+def _subsample(points: np.ndarray | torch.Tensor, num_points: int | None) -> np.ndarray | torch.Tensor:
+    """The FPS subset of ``points (N, 3)`` with ``num_points`` points (all of them if ``None``)."""
     if num_points is None or len(points) <= num_points:
         return points
-    return points[farthest_point_sampling(points.astype(np.float32), num_points)]
+    single = points.astype(np.float32) if isinstance(points, np.ndarray) else points.float()
+    return points[farthest_point_sampling(single, num_points)]
 
 
 def _normalise(src: np.ndarray, tgt: np.ndarray) -> tuple[torch.Tensor, torch.Tensor, float]:
@@ -150,12 +152,6 @@ def start_poses(count: int, angle_deg: float = 90.0) -> torch.Tensor:
     return se3_exp(torch.cat([rotvecs, torch.zeros_like(rotvecs)], dim=1))
 
 
-def _subsample_tensor(points: torch.Tensor, num_points: int | None) -> torch.Tensor:
-    if num_points is None or len(points) <= num_points:
-        return points
-    return points[torch.as_tensor(farthest_point_sampling(points.float().numpy(), num_points))]
-
-
 class AdamRegistration(_Solver):
     """Adam on ``xi`` in se(3) with any registered alignment loss, optionally from several starts.
 
@@ -227,7 +223,7 @@ class AdamRegistration(_Solver):
         )
         chosen = 0
         for stage, loss in zip(self.stages, self.losses, strict=True):
-            src, tgt = _subsample_tensor(src_t, stage.points), _subsample_tensor(tgt_t, stage.points)
+            src, tgt = _subsample(src_t, stage.points), _subsample(tgt_t, stage.points)
             poses = self._run_stage(stage, loss, src, tgt, poses, curve, bar, unscale)
             if len(poses) > 1:
                 with torch.no_grad():

@@ -58,6 +58,8 @@ for seed in $SEEDS; do
           for loss in ours cd gt; do
             cell "$part" "${backbone}_$loss" "${backbone}_$loss" "$seed"
           done
+          # Control: the unsupervised regulariser alone (the line term is logged, weight 0).
+          cell "$part" "${backbone}_reg" "${backbone}_ours" "$seed" loss.terms.alignment.weight=0
         done
         baselines "$part" "$OUT/$part/rpm_ours_s$seed"
         ;;

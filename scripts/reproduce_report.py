@@ -69,9 +69,12 @@ PAPER = {
 }
 KEYS = ("err_r_deg_mean", "err_t_l1_mean", "err_t_l2_mean", "err_pw_l1_mean", "err_pw_l2_mean")
 SCALE = (1.0, 10.0, 10.0, 10.0, 10.0)  # the paper prints Err_t and Err_pw x 10^-1
+IDENTITY = "identity"
+# Control cells: the untrained network and its unsupervised regulariser alone (alignment weight 0).
+CONTROLS = ("untrained", "reg")
 ROW_ORDER = (
-    ["icp_point", "icp_plane", "fricp", "fgr"]
-    + [f"{b}_{loss}" for b in ("dcp", "fmr", "rpm") for loss in ("gt", "cd", "ours")]
+    [IDENTITY, "icp_point", "icp_plane", "fricp", "fgr"]
+    + [f"{b}_{loss}" for b in ("dcp", "fmr", "rpm") for loss in (*CONTROLS, "gt", "cd", "ours")]
     + ["rpm_ours_fixed_nu", "rpm_gt_procedural", "rpm_gt_finetuned"]
 )
 CELL = re.compile(r"(?P<cell>.+)_s(?P<seed>\d+)$")
@@ -94,6 +97,14 @@ def _test_metrics(run: Path) -> dict[str, float]:
         return {key: content["model"][key] for key in (*KEYS, "err_r_deg_median")}
     metrics = content["metrics"]
     return {key: metrics[f"test/{key}"] for key in (*KEYS, "err_r_deg_median")}
+
+
+def _identity_metrics(run: Path) -> dict[str, float] | None:
+    """Test-split means of the identity (no motion) on a training run's test pairs, if recorded."""
+    metrics = json.loads((run / "metrics.json").read_text()).get("metrics", {})
+    if f"test/identity/{KEYS[0]}" not in metrics:
+        return None
+    return {key: metrics[f"test/identity/{key}"] for key in (*KEYS, "err_r_deg_median")}
 
 
 def _seconds(run: Path) -> float | None:
@@ -126,6 +137,12 @@ def protocol_rows(out: Path, protocol: str) -> list[dict[str, str]]:
     """One table row per method: our measurement, the paper's, median Err_R, seeds and time."""
     protocol_dir = out / protocol
     rows: dict[str, dict[str, str]] = {}
+    identity = next(
+        (m for runs in _runs(protocol_dir).values() for m in [_identity_metrics(runs[0])] if m is not None), None
+    )
+    if identity is not None:
+        cols = [f"{identity[key] * scale:.3f}" for key, scale in zip(KEYS, SCALE, strict=True)]
+        rows[IDENTITY] = _row(cols, identity["err_r_deg_median"], "-", "")
     for cell, runs in _runs(protocol_dir).items():
         metrics = [_test_metrics(run) for run in runs]
         cols = [_fmt([m[key] for m in metrics], scale) for key, scale in zip(KEYS, SCALE, strict=True)]

@@ -119,8 +119,8 @@ def check_pair_batch(
 
     Raises:
         TypeError: ``batch`` is not a ``PairBatch``.
-        ValueError: bad point shapes, mismatched batch sizes, missing normals (when
-            ``needs_normals``), different source/target counts (when ``equal_counts``), or a
+        ValueError: bad point shapes, NaN/Inf coordinates, mismatched batch sizes, missing or
+            non-finite normals (when ``needs_normals``), different source/target counts (when ``equal_counts``), or a
             ragged batch (``*_lengths`` below the padded size), which the models do not support.
     """
     if not isinstance(batch, PairBatch):
@@ -151,6 +151,7 @@ def check_pair_batch(
                 f"batch.{side}_normals must have the shape of batch.{side}_xyz "
                 f"{tuple(points.shape)}, got {tuple(normals.shape)}"
             )
+        check_points(normals, f"batch.{side}_normals", batched=True)
     if equal_counts and batch.src_xyz.shape[1] != batch.tgt_xyz.shape[1]:
         raise ValueError(
             f"{model_name} needs equal source and target point counts, got "
@@ -191,12 +192,20 @@ def soft_correspondence_transform(
         result = weighted_procrustes(src, virtual_tgt / (mass[..., None] + ASSIGNMENT_EPS), mass)
     else:
         result = weighted_procrustes(src, virtual_tgt)
-    failed = (~result.valid).nonzero().flatten().tolist()
-    if failed:
+    non_finite = ~torch.isfinite(assignment).flatten(1).all(dim=1)
+    degenerate = ~result.valid & ~non_finite
+    if bool(non_finite.any()):
         warnings.warn(
-            f"{model_name}: the rigid fit is degenerate for batch index(es) {failed} "
-            "(coincident or collinear points, or no assignment mass); their estimate falls back "
-            "towards the identity rotation",
+            f"{model_name}: the soft assignment is NaN/Inf for batch index(es) "
+            f"{non_finite.nonzero().flatten().tolist()} (non-finite features or weights: extreme "
+            "coordinates, or diverged parameters); their estimate falls back to the identity rotation",
+            stacklevel=3,
+        )
+    if bool(degenerate.any()):
+        warnings.warn(
+            f"{model_name}: the rigid fit is degenerate for batch index(es) "
+            f"{degenerate.nonzero().flatten().tolist()} (coincident or collinear points, or no "
+            "assignment mass); their estimate falls back towards the identity rotation",
             stacklevel=3,
         )
     return result.transform

@@ -288,6 +288,23 @@ class TestConsistency:
             small_model("rpmnet")(batch)
 
 
+    @pytest.mark.parametrize("side", ["src", "tgt"])
+    @pytest.mark.parametrize("bad", [float("nan"), float("inf")])
+    def test_rpmnet_refuses_non_finite_normals(self, side, bad):
+        batch = make_pair(1, 32)
+        getattr(batch, f"{side}_normals")[0, 5, 1] = bad
+        with pytest.raises(ValueError, match=rf"batch\.{side}_normals contains NaN or Inf"):
+            small_model("rpmnet")(batch)
+
+    def test_non_finite_assignment_is_not_blamed_on_the_geometry(self):
+        src = torch.rand(2, 16, 3)
+        assignment = torch.rand(2, 16, 16)
+        assignment[1, 3, 4] = float("nan")
+        with pytest.warns(UserWarning, match=r"soft assignment is NaN/Inf for batch index\(es\) \[1\]") as caught:
+            soft_correspondence_transform(src, src, assignment, weighted=True, model_name="RPM-Net")
+        assert not any("collinear" in str(w.message) for w in caught)
+
+
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
 @pytest.mark.parametrize("name", MODEL_NAMES)
 def test_cuda_matches_cpu(name):

@@ -172,10 +172,22 @@ class TestContract:
         assert (matrices if torch.is_tensor(matrices) else matrices[-1]).shape == (2, 72, 56)
         check_transform(output.transform, rigid_atol=1e-4)
 
-    def test_ragged_batches_are_refused(self, name):
+    @pytest.mark.parametrize("lengths", [[48, 40], [48, 49], [48, -1], [48.0, 48.0], [48, 48, 48]], ids=str)
+    def test_ragged_or_invalid_lengths_are_refused(self, name, lengths):
         batch = make_pair(2, 48)
-        batch.src_lengths = torch.tensor([48, 40])
-        with pytest.raises(ValueError, match="needs full clouds"):
+        batch.src_lengths = torch.tensor(lengths)
+        with pytest.raises(ValueError, match=r"needs full clouds: batch\.src_lengths must be None or 48"):
+            small_model(name)(batch)
+
+    def test_other_dtypes_are_named(self, name):
+        batch = make_pair(1, 16)
+        batch.src_xyz = batch.src_xyz.double()
+        with pytest.raises(TypeError, match=r"parameters are torch\.float32 but batch\.src_xyz is torch\.float64"):
+            small_model(name)(batch)
+
+    def test_one_point_is_refused(self, name):
+        batch = make_pair(1, 1)
+        with pytest.raises(ValueError, match=r"batch\.src_xyz must hold at least 2 point\(s\), got 1"):
             small_model(name)(batch)
 
     def test_permutation_invariance(self, name):
@@ -286,7 +298,6 @@ class TestConsistency:
         batch.tgt_normals = None
         with pytest.raises(ValueError, match=r"RPM-Net needs normals.*Open3D"):
             small_model("rpmnet")(batch)
-
 
     @pytest.mark.parametrize("side", ["src", "tgt"])
     @pytest.mark.parametrize("bad", [float("nan"), float("inf")])

@@ -284,9 +284,10 @@ def _skip_ply_element(body: bytes, offset: int, element: _PlyElement, byte_order
 
 
 def _read_pcd(path: Path) -> tuple[np.ndarray, np.ndarray | None]:
-    """Points (and normals) of a PCD file, through Open3D."""
+    """Points (and normals) of a PCD file, through Open3D, after checking the data length."""
     import open3d as o3d
 
+    _check_pcd_length(path)
     cloud = o3d.io.read_point_cloud(str(path), format="pcd")
     if not cloud.has_points():
         raise ValueError("Open3D read no points (empty or malformed PCD)")
@@ -294,18 +295,53 @@ def _read_pcd(path: Path) -> tuple[np.ndarray, np.ndarray | None]:
     return np.asarray(cloud.points), normals
 
 
+def _check_pcd_length(path: Path) -> None:
+    """Raise ``ValueError`` when an ascii PCD body holds another number of rows than its header's
+    ``POINTS``, or a binary body fewer bytes (Open3D fills missing points with NaN or zeros);
+    compressed bodies are left to Open3D."""
+    header: dict[str, list[str]] = {}
+    with path.open("rb") as stream:
+        while True:
+            raw = stream.readline()
+            if not raw:
+                raise ValueError("the PCD header has no DATA line")
+            words = raw.decode("ascii", errors="replace").split()
+            if words and not words[0].startswith("#"):
+                header[words[0].upper()] = words[1:]
+            if words and words[0].upper() == "DATA":
+                break
+        body = stream.read()
+    try:
+        points = int(header["POINTS"][0])
+        point_bytes = sum(int(size) * int(count) for size, count in zip(header["SIZE"], header["COUNT"], strict=True))
+    except (KeyError, IndexError, ValueError) as error:
+        raise ValueError(f"malformed PCD header (POINTS, SIZE and COUNT lines needed): {error}") from error
+    encoding = header["DATA"][0].lower() if header["DATA"] else ""
+    if encoding == "ascii":
+        rows = sum(1 for line in body.splitlines() if line.strip())
+        if rows != points:
+            raise ValueError(f"the header declares POINTS {points} but the file holds {rows} data lines")
+    elif encoding == "binary" and len(body) < points * point_bytes:
+        raise ValueError(
+            f"the header declares POINTS {points} of {point_bytes} bytes ({points * point_bytes} bytes) but the "
+            f"file holds {len(body)} bytes of data"
+        )
+
+
 def _read_obj(path: Path) -> tuple[np.ndarray, np.ndarray | None]:
     """``v`` (and matching ``vn``) lines of a Wavefront OBJ file."""
-    vertices, normals = [], []
+    rows: dict[str, list[list[str]]] = {"v": [], "vn": []}
     with path.open("r", encoding="utf-8", errors="replace") as stream:
-        for line in stream:
-            if line.startswith("v "):
-                vertices.append(line.split()[1:4])
-            elif line.startswith("vn "):
-                normals.append(line.split()[1:4])
-    xyz = np.array(vertices, dtype=np.float32).reshape(-1, 3)
-    if normals and len(normals) == len(vertices):
-        return xyz, np.array(normals, dtype=np.float32).reshape(-1, 3)
+        for number, line in enumerate(stream, start=1):
+            words = line.split()
+            if not words or words[0] not in rows:
+                continue
+            if len(words) < 4:
+                raise ValueError(f"line {number}: {words[0]!r} needs 3 numbers, got {' '.join(words)!r}")
+            rows[words[0]].append(words[1:4])
+    xyz = np.array(rows["v"], dtype=np.float32).reshape(-1, 3)
+    if rows["vn"] and len(rows["vn"]) == len(rows["v"]):
+        return xyz, np.array(rows["vn"], dtype=np.float32).reshape(-1, 3)
     return xyz, None
 
 

@@ -208,6 +208,20 @@ def test_big_endian_ply_with_a_list_element_before_the_vertices(tmp_path: Path, 
         read_point_cloud(path)
 
 
+def test_malformed_obj_and_pcd_are_explained(tmp_path: Path, cloud: PointCloud) -> None:
+    (tmp_path / "short.obj").write_text("v 1 2 3\nv 1 2\n")
+    with pytest.raises(ValueError, match=r"short\.obj: .*line 2: 'v' needs 3 numbers, got 'v 1 2'"):
+        read_point_cloud(tmp_path / "short.obj")
+    write_point_cloud(tmp_path / "full.pcd", cloud.xyz)
+    (tmp_path / "cut.pcd").write_bytes((tmp_path / "full.pcd").read_bytes()[:-5])
+    with pytest.raises(ValueError, match=r"cut\.pcd: .*POINTS 50 of 12 bytes \(600 bytes\) but the file holds 595"):
+        read_point_cloud(tmp_path / "cut.pcd")
+    header = "VERSION 0.7\nFIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\nWIDTH 3\nHEIGHT 1\nPOINTS 3\nDATA ascii\n"
+    (tmp_path / "short.pcd").write_text(header + "1 2 3\n")
+    with pytest.raises(ValueError, match=r"short\.pcd: .*declares POINTS 3 but the file holds 1 data lines"):
+        read_point_cloud(tmp_path / "short.pcd")
+
+
 def test_a_folder_is_not_a_file(tmp_path: Path) -> None:
     (tmp_path / "scan.ply").mkdir()
     with pytest.raises(IsADirectoryError, match=r"scan\.ply: is a folder, not a file"):

@@ -45,7 +45,7 @@ CHECKPOINT_DIR = "checkpoints"
 LAST = "last.pt"
 BEST = "best.pt"
 # The temporary file of an unfinished save: ``.<name>.<pid>.tmp`` beside its destination.
-_TEMPORARY = re.compile(r"^\.(?P<name>.+)\.(?P<pid>\d+)\.tmp$")
+_TEMPORARY = re.compile(r"^\..+\.(?P<pid>\d+)\.tmp$")
 
 
 class CorruptCheckpointError(ValueError):
@@ -112,7 +112,7 @@ def _process_exists(pid: int) -> bool:
         return False
     except PermissionError:
         return True
-    except OSError:  # not a valid pid on this platform
+    except (OSError, OverflowError):  # not a valid pid on this platform
         return False
     return True
 
@@ -196,7 +196,7 @@ def load_resume_checkpoint(path: str | Path, map_location: str | torch.device = 
     for candidate in others:
         try:
             state = load_checkpoint(candidate, map_location)
-        except CorruptCheckpointError as error:
+        except ValueError as error:  # corrupt, or not a linereg checkpoint of this version
             failures.append(str(error))
             continue
         epoch = state.get("progress", {}).get("epoch")

@@ -7,7 +7,9 @@ Layout of one cache (``<cache_root>/<dataset name>-<settings hash>/``)::
 
 The folder name hashes :meth:`PairDataset.settings`, so changing any generator setting
 writes a new cache instead of silently reusing a stale one. Shards are written atomically
-as they finish; an interrupted run resumes by generating only the missing shards. Loading
+as they finish; an interrupted run resumes by generating only the missing shards, and
+:func:`materialize` regenerates (with a warning) a shard that was deleted or cannot be read and
+a manifest that cannot be parsed. Loading
 reads every shard once into memory (a 10 000-pair, 1024-point cache with normals is ~0.5 GB)
 and then serves pairs by slicing, shared copy-on-write with forked DataLoader workers.
 """
@@ -20,6 +22,9 @@ import math
 import multiprocessing
 import os
 import time
+import warnings
+import zipfile
+import zlib
 from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any
@@ -35,6 +40,18 @@ from linereg.structures import PairSample
 FORMAT_VERSION = 1
 MANIFEST = "manifest.json"
 _CLOUD_FIELDS = ("src_xyz", "tgt_xyz", "src_normals", "tgt_normals")
+
+
+class CorruptCacheError(ValueError):
+    """Files of a cache folder that are missing or cannot be read.
+
+    Attributes:
+        files: the missing or unreadable files (shards or the manifest).
+    """
+
+    def __init__(self, message: str, files: list[Path]) -> None:
+        super().__init__(message)
+        self.files = files
 
 
 def _canonical(settings: dict[str, Any]) -> dict[str, Any]:
@@ -92,13 +109,13 @@ class CachedPairs(Dataset):
                 f"no pair cache at {self.path} (missing {MANIFEST}); generate it with "
                 "scripts/prepare_dataset.py or build_dataset({..., 'cache_dir': ...})"
             )
-        self.manifest = json.loads(manifest_file.read_text())
+        self.manifest = read_manifest(manifest_file)
         if self.manifest.get("version") != FORMAT_VERSION:
             raise ValueError(
                 f"{manifest_file}: cache format version {self.manifest.get('version')} is not "
                 f"{FORMAT_VERSION}; delete the folder and regenerate it"
             )
-        shards = [np.load(self.path / s["file"]) for s in self.manifest["shards"]]
+        shards = _load_shards([self.path / s["file"] for s in self.manifest["shards"]])
         self._arrays: dict[str, np.ndarray] = {}
         for name in _CLOUD_FIELDS:
             self._arrays[name] = np.concatenate([s[name] for s in shards])
@@ -146,6 +163,51 @@ class CachedPairs(Dataset):
         )
 
 
+def read_manifest(file: Path) -> dict[str, Any]:
+    """The parsed ``manifest.json`` of a cache.
+
+    Raises:
+        CorruptCacheError: the file is not a JSON object with ``num_pairs`` and ``shards``.
+    """
+    try:
+        manifest = json.loads(file.read_text())
+    except (UnicodeDecodeError, json.JSONDecodeError) as error:
+        raise CorruptCacheError(
+            f"{file}: not a valid cache manifest ({type(error).__name__}: {error}); delete it and generate the "
+            "cache again with the same settings (existing shards are kept)",
+            [file],
+        ) from error
+    if not isinstance(manifest, dict) or not {"num_pairs", "shards", "settings"} <= set(manifest):
+        raise CorruptCacheError(
+            f"{file}: not a cache manifest (expected a JSON object with num_pairs, shards and settings); delete it "
+            "and generate the cache again",
+            [file],
+        )
+    return manifest
+
+
+def _load_shards(files: list[Path]) -> list[dict[str, np.ndarray]]:
+    """Every array of every shard, read now, or one error naming each missing or unreadable shard."""
+    shards, problems = [], {}
+    for file in files:
+        try:
+            with np.load(file, allow_pickle=False) as archive:
+                shards.append({name: archive[name] for name in archive.files})
+        except FileNotFoundError:
+            problems[file] = "missing"
+        except (OSError, ValueError, EOFError, KeyError, zipfile.BadZipFile, zlib.error) as error:
+            problems[file] = f"unreadable ({type(error).__name__}: {error})"
+    if problems:
+        listing = "\n  ".join(f"{file}: {problem}" for file, problem in problems.items())
+        raise CorruptCacheError(
+            f"cache shard(s) missing or corrupt (truncated by an interrupted copy or a full disk?):\n  {listing}\n"
+            "generate the cache again with the same settings (build_dataset with cache_dir, or "
+            "scripts/prepare_dataset.py): only these shards are regenerated",
+            list(problems),
+        )
+    return shards
+
+
 _worker_dataset: PairDataset | None = None
 
 
@@ -178,7 +240,8 @@ def materialize(
 ) -> CachedPairs:
     """Generate every pair of ``dataset`` once into a cache under ``cache_root`` and load it.
 
-    An existing complete cache with the same settings is loaded without generating anything.
+    An existing complete cache with the same settings is loaded without generating anything;
+    missing or unreadable shards and an unreadable manifest are regenerated with a warning.
 
     Args:
         dataset: the generator.
@@ -195,9 +258,40 @@ def materialize(
     settings = _canonical(dataset.settings())
     manifest_file = path / MANIFEST
     if manifest_file.is_file():
-        manifest = json.loads(manifest_file.read_text())
+        try:
+            manifest = read_manifest(manifest_file)
+        except CorruptCacheError as error:
+            warnings.warn(
+                f"{error.files[0]}: unreadable cache manifest; writing a new one", RuntimeWarning, stacklevel=2
+            )
+            manifest = {}
         if manifest.get("settings") == settings and manifest.get("num_pairs") == len(dataset):
-            return CachedPairs(path)
+            try:
+                return CachedPairs(path)
+            except CorruptCacheError as error:
+                _discard(error)
+    _generate(dataset, path, settings, workers=workers, shard_size=shard_size, progress=progress)
+    try:
+        return CachedPairs(path)
+    except CorruptCacheError as error:  # a shard left by an earlier run that wrote no manifest
+        _discard(error)
+    _generate(dataset, path, settings, workers=workers, shard_size=shard_size, progress=progress)
+    return CachedPairs(path)
+
+
+def _discard(error: CorruptCacheError) -> None:
+    """Delete the unreadable files named by ``error`` (with a warning) so they are generated again."""
+    names = ", ".join(str(file) for file in error.files)
+    warnings.warn(f"cache file(s) missing or unreadable, regenerating: {names}", RuntimeWarning, stacklevel=3)
+    for file in error.files:
+        file.unlink(missing_ok=True)
+
+
+def _generate(
+    dataset: PairDataset, path: Path, settings: dict[str, Any], *, workers: int | None, shard_size: int, progress: bool
+) -> None:
+    """Generate the missing shards of the cache at ``path`` and write its manifest."""
+    manifest_file = path / MANIFEST
     path.mkdir(parents=True, exist_ok=True)
     shard_size = min(shard_size, max(8, math.ceil(len(dataset) / 16)))
     shards = [
@@ -240,7 +334,6 @@ def materialize(
     tmp = manifest_file.with_name(MANIFEST + ".tmp")
     tmp.write_text(json.dumps(manifest, indent=2))
     os.replace(tmp, manifest_file)
-    return CachedPairs(path)
 
 
 @DATASETS.register("cached")

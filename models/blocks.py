@@ -114,28 +114,47 @@ def check_pair_batch(
     *,
     needs_normals: bool = False,
     equal_counts: bool = False,
+    dtype: torch.dtype | None = None,
 ) -> None:
     """Check the parts of a :class:`PairBatch` a model reads.
 
+    Args:
+        batch: the input pairs.
+        model_name: named in the messages.
+        needs_normals: the model reads ``batch.src_normals`` and ``batch.tgt_normals``.
+        equal_counts: the model needs as many source as target points.
+        dtype: the dtype of the model's parameters, which the clouds must share (``None``: any).
+
     Raises:
-        TypeError: ``batch`` is not a ``PairBatch``.
-        ValueError: bad point shapes, mismatched batch sizes, missing normals (when
-            ``needs_normals``), different source/target counts (when ``equal_counts``), or a
-            ragged batch (``*_lengths`` below the padded size), which the models do not support.
+        TypeError: ``batch`` is not a ``PairBatch``, or its clouds are not of ``dtype``.
+        ValueError: bad point shapes, fewer than 2 points, NaN/Inf coordinates, mismatched
+            batch sizes, missing or non-finite normals (when ``needs_normals``), different
+            source/target counts (when ``equal_counts``), or ``*_lengths`` other than the padded
+            size (ragged batches are not supported).
     """
     if not isinstance(batch, PairBatch):
         raise TypeError(f"{model_name} expects a PairBatch, got {type(batch).__name__}")
-    check_points(batch.src_xyz, "batch.src_xyz", batched=True)
-    check_points(batch.tgt_xyz, "batch.tgt_xyz", batched=True)
+    # One point cannot define a rotation (and normalisation layers need two values per channel).
+    check_points(batch.src_xyz, "batch.src_xyz", batched=True, min_points=2)
+    check_points(batch.tgt_xyz, "batch.tgt_xyz", batched=True, min_points=2)
     check_same_batch(batch.src_xyz, batch.tgt_xyz, "batch.src_xyz", "batch.tgt_xyz")
     for side in ("src", "tgt"):
         points = getattr(batch, f"{side}_xyz")
+        if dtype is not None and points.dtype != dtype and not torch.is_autocast_enabled(points.device.type):
+            raise TypeError(
+                f"{model_name}'s parameters are {dtype} but batch.{side}_xyz is {points.dtype}: convert the "
+                f"clouds (tensor.to({dtype})) or the model (model.to({points.dtype}))"
+            )
+    for side in ("src", "tgt"):
+        points = getattr(batch, f"{side}_xyz")
         lengths = getattr(batch, f"{side}_lengths")
-        if lengths is not None and bool((lengths < points.shape[1]).any()):
+        if lengths is not None and (
+            lengths.shape != points.shape[:1] or lengths.is_floating_point() or bool((lengths != points.shape[1]).any())
+        ):
             raise ValueError(
-                f"{model_name} needs full clouds, but batch.{side}_lengths has values below the "
-                f"padded size {points.shape[1]}: resample every cloud of the batch to the same "
-                "number of points"
+                f"{model_name} needs full clouds: batch.{side}_lengths must be None or {points.shape[1]} (the "
+                f"padded size) for each of the {points.shape[0]} clouds, got {lengths.tolist()}; resample every "
+                "cloud of the batch to the same number of points"
             )
         if not needs_normals:
             continue
@@ -151,6 +170,7 @@ def check_pair_batch(
                 f"batch.{side}_normals must have the shape of batch.{side}_xyz "
                 f"{tuple(points.shape)}, got {tuple(normals.shape)}"
             )
+        check_points(normals, f"batch.{side}_normals", batched=True)
     if equal_counts and batch.src_xyz.shape[1] != batch.tgt_xyz.shape[1]:
         raise ValueError(
             f"{model_name} needs equal source and target point counts, got "
@@ -191,12 +211,20 @@ def soft_correspondence_transform(
         result = weighted_procrustes(src, virtual_tgt / (mass[..., None] + ASSIGNMENT_EPS), mass)
     else:
         result = weighted_procrustes(src, virtual_tgt)
-    failed = (~result.valid).nonzero().flatten().tolist()
-    if failed:
+    non_finite = ~torch.isfinite(assignment).flatten(1).all(dim=1)
+    degenerate = ~result.valid & ~non_finite
+    if bool(non_finite.any()):
         warnings.warn(
-            f"{model_name}: the rigid fit is degenerate for batch index(es) {failed} "
-            "(coincident or collinear points, or no assignment mass); their estimate falls back "
-            "towards the identity rotation",
+            f"{model_name}: the soft assignment is NaN/Inf for batch index(es) "
+            f"{non_finite.nonzero().flatten().tolist()} (non-finite features or weights: extreme "
+            "coordinates, or diverged parameters); their estimate falls back to the identity rotation",
+            stacklevel=3,
+        )
+    if bool(degenerate.any()):
+        warnings.warn(
+            f"{model_name}: the rigid fit is degenerate for batch index(es) "
+            f"{degenerate.nonzero().flatten().tolist()} (coincident or collinear points, or no "
+            "assignment mass); their estimate falls back towards the identity rotation",
             stacklevel=3,
         )
     return result.transform

@@ -223,7 +223,7 @@ class DCP(nn.Module):
         return torch.softmax(logits, dim=-1)
 
     def forward(self, batch: PairBatch) -> RegistrationOutput:
-        check_pair_batch(batch, "DCP")
+        check_pair_batch(batch, "DCP", dtype=next(self.parameters()).dtype)
         src, tgt = batch.src_xyz, batch.tgt_xyz
         src_features = self.embedding(src).transpose(1, 2)
         tgt_features = self.embedding(tgt).transpose(1, 2)

@@ -184,7 +184,7 @@ class FMR(nn.Module):
         return estimates, first_features, residual
 
     def forward(self, batch: PairBatch) -> RegistrationOutput:
-        check_pair_batch(batch, "FMR", equal_counts=True)
+        check_pair_batch(batch, "FMR", equal_counts=True, dtype=self.dt.dtype)
         src, tgt = batch.src_xyz, batch.tgt_xyz
         src_mean, tgt_mean = src.mean(dim=1), tgt.mean(dim=1)
         src_centred, tgt_centred = src - src_mean[:, None], tgt - tgt_mean[:, None]

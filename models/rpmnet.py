@@ -417,7 +417,7 @@ class RPMNet(nn.Module):
         self.slack = slack
 
     def forward(self, batch: PairBatch) -> RegistrationOutput:
-        check_pair_batch(batch, "RPM-Net", needs_normals=True)
+        check_pair_batch(batch, "RPM-Net", needs_normals=True, dtype=next(self.parameters()).dtype)
         src, tgt = batch.src_xyz, batch.tgt_xyz
         src_normals, tgt_normals = batch.src_normals, batch.tgt_normals
         tgt_features = self.features(tgt, tgt_normals)

@@ -14,6 +14,7 @@ Only the standard library is used (urllib), plus tqdm for progress bars.
 from __future__ import annotations
 
 import hashlib
+import os
 import shutil
 import tarfile
 import urllib.error
@@ -57,6 +58,10 @@ class Resource:
     size: int | None = None
     member_md5: dict[str, str] = field(default_factory=dict)
     note: str = ""
+
+    def has_checksum(self) -> bool:
+        """Whether the archive itself has a published digest (sha256 or md5)."""
+        return bool(self.sha256 or self.md5)
 
     def integrity(self) -> str:
         """Human-readable description of how the file is verified."""
@@ -166,6 +171,9 @@ def manual_instructions(resource: Resource, directory: Path) -> str:
 def fetch(resource: Resource, directory: Path, *, timeout: float = 60.0, progress: bool = True) -> Path:
     """A verified local copy of ``resource`` in ``directory`` (downloaded when missing).
 
+    Plain-``http://`` mirrors are used only when the resource has a sha256 or md5 to verify the
+    file against; otherwise they are skipped (and listed in the error).
+
     Raises:
         IntegrityError: a file already present (e.g. placed by hand) fails verification.
         DownloadError: every mirror failed or delivered a corrupt file; the message lists
@@ -177,6 +185,12 @@ def fetch(resource: Resource, directory: Path, *, timeout: float = 60.0, progres
         return destination
     failures = []
     for url in resource.urls:
+        if url.startswith("http://") and not resource.has_checksum():
+            failures.append(
+                f"{url}: skipped, plain http without a published checksum (a corrupted or tampered file could not "
+                "be detected); fetch it by hand only if you trust the connection"
+            )
+            continue
         try:
             download(url, destination, timeout=timeout, progress=progress)
             verify(destination, resource)
@@ -191,17 +205,40 @@ def fetch(resource: Resource, directory: Path, *, timeout: float = 60.0, progres
 
 
 def _safe_target(directory: Path, member: str) -> Path:
-    """Extraction path of an archive member; ValueError when it would escape ``directory``."""
+    """Extraction path of an archive member.
+
+    Raises:
+        ValueError: the path would escape ``directory`` (absolute, ``..``), or passes through or
+            ends at a symbolic link already inside ``directory`` (which could point anywhere).
+    """
     relative = PurePosixPath(member)
     if relative.is_absolute() or ".." in relative.parts:
         raise ValueError(f"refusing to extract {member!r}: it points outside {directory}")
-    return directory / Path(*relative.parts)
+    target = directory
+    for part in relative.parts:
+        target = target / part
+        if target.is_symlink():
+            raise ValueError(
+                f"refusing to extract {member!r}: {target} is a symbolic link inside {directory}, which "
+                "extraction would follow; remove it or extract into an empty folder"
+            )
+    return target
+
+
+def _write_member(source, target: Path) -> None:
+    """Copy an archive member's stream to ``target``, never through a symbolic link there."""
+    target.parent.mkdir(parents=True, exist_ok=True)
+    descriptor = os.open(target, os.O_WRONLY | os.O_CREAT | os.O_TRUNC | getattr(os, "O_NOFOLLOW", 0), 0o644)
+    with os.fdopen(descriptor, "wb") as sink:
+        shutil.copyfileobj(source, sink)
 
 
 def extract(archive: Path, directory: Path) -> list[Path]:
     """Extract a ``.zip`` / ``.tar`` / ``.tar.gz`` / ``.tgz`` archive into ``directory``.
 
-    Members with absolute paths or ``..`` components are rejected before anything is written.
+    Members with absolute paths or ``..`` components, and members whose path runs through a
+    symbolic link already inside ``directory``, are rejected before anything is written; links
+    stored in a tar archive are not extracted.
 
     Returns:
         The extracted regular files.
@@ -217,18 +254,16 @@ def extract(archive: Path, directory: Path) -> list[Path]:
                 members = [m for m in bundle.infolist() if not m.is_dir()]
                 targets = [_safe_target(directory, m.filename) for m in members]
                 for member, target in zip(members, targets, strict=True):
-                    target.parent.mkdir(parents=True, exist_ok=True)
-                    with bundle.open(member) as source, target.open("wb") as sink:
-                        shutil.copyfileobj(source, sink)
+                    with bundle.open(member) as source:
+                        _write_member(source, target)
                     written.append(target)
         elif tarfile.is_tarfile(archive):
             with tarfile.open(archive) as bundle:
                 members = [m for m in bundle.getmembers() if m.isfile()]
                 targets = [_safe_target(directory, m.name) for m in members]
                 for member, target in zip(members, targets, strict=True):
-                    target.parent.mkdir(parents=True, exist_ok=True)
-                    with bundle.extractfile(member) as source, target.open("wb") as sink:
-                        shutil.copyfileobj(source, sink)
+                    with bundle.extractfile(member) as source:
+                        _write_member(source, target)
                     written.append(target)
         else:
             raise ValueError(f"{archive}: not a zip or tar archive")

@@ -9,7 +9,7 @@ import pytest
 from omegaconf import OmegaConf
 
 from datasets import DATASETS, build_dataset
-from datasets.cache import MANIFEST, CachedPairs, cache_path, materialize
+from datasets.cache import MANIFEST, CachedPairs, CorruptCacheError, cache_path, materialize
 
 CONFIG = {
     "name": "procedural",
@@ -47,6 +47,38 @@ def test_existing_cache_is_reused_and_partial_cache_resumed(tmp_path):
     resumed = materialize(generator, tmp_path, workers=0, progress=False)
     assert resumed.manifest["generated_pairs"] == 8
     _assert_same(resumed[12], generator[12])
+
+
+def test_deleted_or_corrupt_shards_are_named_and_regenerated(tmp_path):
+    generator = build_dataset(CONFIG)
+    first = materialize(generator, tmp_path, workers=0, progress=False)
+    deleted, truncated = (first.path / shard["file"] for shard in first.manifest["shards"])
+    deleted.unlink()
+    truncated.write_bytes(truncated.read_bytes()[:300])
+    with pytest.raises(CorruptCacheError, match=rf"{deleted.name}: missing\n.*{truncated.name}: unreadable") as error:
+        CachedPairs(first.path)
+    assert "generate the cache again" in str(error.value)
+    with pytest.warns(RuntimeWarning, match=rf"regenerating: .*{deleted.name}.*{truncated.name}"):
+        again = materialize(generator, tmp_path, workers=0, progress=False)
+    assert again.manifest["generated_pairs"] == 16
+    for index in (0, 15):
+        _assert_same(again[index], generator[index])
+
+
+def test_corrupt_manifest_is_named_and_rewritten(tmp_path):
+    generator = build_dataset(CONFIG)
+    first = materialize(generator, tmp_path, workers=0, progress=False)
+    manifest = first.path / MANIFEST
+    manifest.write_text('{"version": 1, "num_pa')
+    with pytest.raises(CorruptCacheError, match=rf"{MANIFEST}: not a valid cache manifest \(JSONDecodeError"):
+        CachedPairs(first.path)
+    manifest.write_text("[1, 2]")
+    with pytest.raises(CorruptCacheError, match=r"not a cache manifest \(expected a JSON object"):
+        CachedPairs(first.path)
+    with pytest.warns(RuntimeWarning, match=rf"{MANIFEST}: unreadable cache manifest; writing a new one"):
+        again = materialize(generator, tmp_path, workers=0, progress=False)
+    assert again.manifest["generated_pairs"] == 0
+    _assert_same(again[3], generator[3])
 
 
 def test_changed_settings_get_their_own_cache(tmp_path):

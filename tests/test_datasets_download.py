@@ -117,13 +117,37 @@ def test_mirrors_are_tried_in_order_and_corrupt_copies_rejected(server, tmp_path
 
 
 def test_dead_links_give_manual_instructions(server, tmp_path):
-    resource = _resource(server, "/gone.bin", size=len(PAYLOAD))
+    resource = _resource(server, "/gone.bin", size=len(PAYLOAD), md5=hashlib.md5(PAYLOAD).hexdigest())
     with pytest.raises(DownloadError) as caught:
         fetch(resource, tmp_path, progress=False)
     message = str(caught.value)
     assert "404" in message and f"{server.url}/gone.bin" in message
     assert f"put it at\n  {tmp_path / 'data.bin'}" in message
     assert f"size {len(PAYLOAD)} bytes" in message
+
+
+def test_plain_http_mirrors_need_a_checksum(server, tmp_path):
+    server.files["/data.bin"] = PAYLOAD
+    unverifiable = _resource(server, "/data.bin", size=len(PAYLOAD))
+    with pytest.raises(DownloadError, match=r"data\.bin: skipped, plain http without a published checksum"):
+        fetch(unverifiable, tmp_path, progress=False)
+    assert server.requests == []
+    verified = _resource(server, "/data.bin", sha256=hashlib.sha256(PAYLOAD).hexdigest())
+    assert fetch(verified, tmp_path, progress=False).read_bytes() == PAYLOAD
+
+
+@pytest.mark.parametrize("link", ["top", "top/x.txt"])
+def test_extraction_does_not_follow_links_inside_the_destination(tmp_path, link):
+    outside = tmp_path / "outside"
+    outside.mkdir()
+    (outside / "x.txt").write_bytes(b"precious")
+    out = tmp_path / "out"
+    (out / link).parent.mkdir(parents=True, exist_ok=True)
+    (out / link).symlink_to(outside if link == "top" else outside / "x.txt")
+    archive = _zip(tmp_path / "a.zip", {"top/x.txt": b"overwritten"})
+    with pytest.raises(ValueError, match=rf"refusing to extract 'top/x\.txt': .*{link}.* is a symbolic link"):
+        extract(archive, out)
+    assert (outside / "x.txt").read_bytes() == b"precious"
 
 
 def test_file_placed_by_hand_is_verified_without_network(tmp_path):

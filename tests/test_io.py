@@ -141,6 +141,93 @@ def test_malformed_binary_files(tmp_path: Path, cloud: PointCloud) -> None:
         read_point_cloud(tmp_path / "garbage.pcd")
 
 
+_XYZ_HEADER = "ply\nformat ascii 1.0\nelement vertex 2\nproperty float x\nproperty float y\nproperty float z\n"
+MALFORMED_PLY = {
+    "empty": ("", r"the file is empty"),
+    "no_vertices": (_XYZ_HEADER.replace("vertex 2", "vertex 0") + "end_header\n", r"the file contains no points"),
+    "missing_z": (
+        "ply\nformat ascii 1.0\nelement vertex 2\nproperty float x\nproperty float y\nend_header\n1 2\n3 4\n",
+        r"the vertex element lacks the property \['z'\] \(it has \['x', 'y'\]\)",
+    ),
+    "missing_end_header": (_XYZ_HEADER + "1 2 3\n4 5 6\n", r"header line 7: '1 2 3' is not a PLY header line"),
+    "unknown_format": (
+        _XYZ_HEADER.replace("ascii", "utf8") + "end_header\n1 2 3\n4 5 6\n",
+        r"header line 2: unknown PLY format 'utf8 1\.0'",
+    ),
+    "no_format": (_XYZ_HEADER.replace("format ascii 1.0\n", "") + "end_header\n", r"no 'format' line"),
+    "bad_type": (_XYZ_HEADER.replace("float z", "float128 z") + "end_header\n", r"header line 6: bad property"),
+    "short_ascii_body": (
+        _XYZ_HEADER.replace("vertex 2", "vertex 10") + "end_header\n1 2 3\n4 5 6\n",
+        r"the header declares vertex: 10 \(10 data lines\) but the file holds 2: truncated",
+    ),
+    "long_ascii_body": (
+        _XYZ_HEADER + "end_header\n1 2 3\n4 5 6\n7 8 9\n",
+        r"holds 3: more data than the header declares",
+    ),
+    "short_ascii_row": (_XYZ_HEADER + "end_header\n1 2 3\n4 5\n", r"vertex 1 has 2 values, the header declares 3"),
+    "no_vertex_element": ("ply\nformat ascii 1.0\nelement face 0\nend_header\n", r"no 'vertex' element"),
+}
+
+
+@pytest.mark.parametrize("case", sorted(MALFORMED_PLY))
+def test_malformed_ply_is_explained(tmp_path: Path, case: str) -> None:
+    content, message = MALFORMED_PLY[case]
+    path = tmp_path / f"{case}.ply"
+    path.write_text(content)
+    with pytest.raises(ValueError, match=rf"{case}\.ply: .*{message}"):
+        read_point_cloud(path)
+
+
+def test_truncated_binary_ply_is_explained(tmp_path: Path, cloud: PointCloud) -> None:
+    write_point_cloud(tmp_path / "full.ply", cloud.xyz)
+    (tmp_path / "cut.ply").write_bytes((tmp_path / "full.ply").read_bytes()[:-7])
+    with pytest.raises(ValueError, match=r"cut\.ply: .*truncated: the header declares 50 vertices of 12 bytes"):
+        read_point_cloud(tmp_path / "cut.ply")
+
+
+@pytest.mark.parametrize("encoding", ["ascii", "binary"])
+def test_ply_with_faces_matches_trimesh(tmp_path: Path, cloud: PointCloud, encoding: str) -> None:
+    mesh = trimesh.Trimesh(cloud.xyz.astype(np.float64), [[0, 1, 2], [2, 3, 4]], process=False)
+    path = tmp_path / "mesh.ply"
+    path.write_bytes(trimesh.exchange.ply.export_ply(mesh, encoding=encoding))
+    expected = trimesh.load(path, process=False).vertices.astype(np.float32)
+    np.testing.assert_array_equal(read_point_cloud(path).xyz, expected)
+
+
+def test_big_endian_ply_with_a_list_element_before_the_vertices(tmp_path: Path, cloud: PointCloud) -> None:
+    header = (
+        "ply\nformat binary_big_endian 1.0\nelement face 2\nproperty list uchar int vertex_indices\n"
+        "element vertex 50\nproperty float x\nproperty float y\nproperty float z\nend_header\n"
+    )
+    faces = b"".join(np.uint8(3).tobytes() + np.array(face, ">i4").tobytes() for face in ([0, 1, 2], [2, 3, 4]))
+    path = tmp_path / "big.ply"
+    path.write_bytes(header.encode() + faces + cloud.xyz.astype(">f4").tobytes())
+    np.testing.assert_array_equal(read_point_cloud(path).xyz, cloud.xyz)
+    path.write_bytes(header.encode() + faces[:7])
+    with pytest.raises(ValueError, match=r"big\.ply: .*truncated inside the 'face' element"):
+        read_point_cloud(path)
+
+
+def test_malformed_obj_and_pcd_are_explained(tmp_path: Path, cloud: PointCloud) -> None:
+    (tmp_path / "short.obj").write_text("v 1 2 3\nv 1 2\n")
+    with pytest.raises(ValueError, match=r"short\.obj: .*line 2: 'v' needs 3 numbers, got 'v 1 2'"):
+        read_point_cloud(tmp_path / "short.obj")
+    write_point_cloud(tmp_path / "full.pcd", cloud.xyz)
+    (tmp_path / "cut.pcd").write_bytes((tmp_path / "full.pcd").read_bytes()[:-5])
+    with pytest.raises(ValueError, match=r"cut\.pcd: .*POINTS 50 of 12 bytes \(600 bytes\) but the file holds 595"):
+        read_point_cloud(tmp_path / "cut.pcd")
+    header = "VERSION 0.7\nFIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\nWIDTH 3\nHEIGHT 1\nPOINTS 3\nDATA ascii\n"
+    (tmp_path / "short.pcd").write_text(header + "1 2 3\n")
+    with pytest.raises(ValueError, match=r"short\.pcd: .*declares POINTS 3 but the file holds 1 data lines"):
+        read_point_cloud(tmp_path / "short.pcd")
+
+
+def test_a_folder_is_not_a_file(tmp_path: Path) -> None:
+    (tmp_path / "scan.ply").mkdir()
+    with pytest.raises(IsADirectoryError, match=r"scan\.ply: is a folder, not a file"):
+        read_point_cloud(tmp_path / "scan.ply")
+
+
 def test_write_errors(tmp_path: Path, cloud: PointCloud) -> None:
     with pytest.raises(ValueError, match=r"unsupported point-cloud extension '\.las'"):
         write_point_cloud(tmp_path / "a.las", cloud.xyz)

@@ -172,10 +172,22 @@ class TestContract:
         assert (matrices if torch.is_tensor(matrices) else matrices[-1]).shape == (2, 72, 56)
         check_transform(output.transform, rigid_atol=1e-4)
 
-    def test_ragged_batches_are_refused(self, name):
+    @pytest.mark.parametrize("lengths", [[48, 40], [48, 49], [48, -1], [48.0, 48.0], [48, 48, 48]], ids=str)
+    def test_ragged_or_invalid_lengths_are_refused(self, name, lengths):
         batch = make_pair(2, 48)
-        batch.src_lengths = torch.tensor([48, 40])
-        with pytest.raises(ValueError, match="needs full clouds"):
+        batch.src_lengths = torch.tensor(lengths)
+        with pytest.raises(ValueError, match=r"needs full clouds: batch\.src_lengths must be None or 48"):
+            small_model(name)(batch)
+
+    def test_other_dtypes_are_named(self, name):
+        batch = make_pair(1, 16)
+        batch.src_xyz = batch.src_xyz.double()
+        with pytest.raises(TypeError, match=r"parameters are torch\.float32 but batch\.src_xyz is torch\.float64"):
+            small_model(name)(batch)
+
+    def test_one_point_is_refused(self, name):
+        batch = make_pair(1, 1)
+        with pytest.raises(ValueError, match=r"batch\.src_xyz must hold at least 2 point\(s\), got 1"):
             small_model(name)(batch)
 
     def test_permutation_invariance(self, name):
@@ -286,6 +298,22 @@ class TestConsistency:
         batch.tgt_normals = None
         with pytest.raises(ValueError, match=r"RPM-Net needs normals.*Open3D"):
             small_model("rpmnet")(batch)
+
+    @pytest.mark.parametrize("side", ["src", "tgt"])
+    @pytest.mark.parametrize("bad", [float("nan"), float("inf")])
+    def test_rpmnet_refuses_non_finite_normals(self, side, bad):
+        batch = make_pair(1, 32)
+        getattr(batch, f"{side}_normals")[0, 5, 1] = bad
+        with pytest.raises(ValueError, match=rf"batch\.{side}_normals contains NaN or Inf"):
+            small_model("rpmnet")(batch)
+
+    def test_non_finite_assignment_is_not_blamed_on_the_geometry(self):
+        src = torch.rand(2, 16, 3)
+        assignment = torch.rand(2, 16, 16)
+        assignment[1, 3, 4] = float("nan")
+        with pytest.warns(UserWarning, match=r"soft assignment is NaN/Inf for batch index\(es\) \[1\]") as caught:
+            soft_correspondence_transform(src, src, assignment, weighted=True, model_name="RPM-Net")
+        assert not any("collinear" in str(w.message) for w in caught)
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")

@@ -85,9 +85,15 @@ def test_hydra_overrides_for_other_ranks(monkeypatch):
     assert "hydra.output_subdir=null" in distributed.hydra_rank_overrides()
 
 
-def test_cuda_request_without_cuda_is_explained():
-    if torch.cuda.is_available():
-        pytest.skip("CUDA present")
-    with pytest.raises(RuntimeError, match="CUDA is not available"):
-        distributed.resolve_device("cuda")
+@pytest.mark.parametrize("spec", ["cuda", "cuda:1"])
+def test_cuda_request_without_cuda_is_explained(monkeypatch, spec):
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    with pytest.raises(ValueError, match=rf"trainer.device='{spec}' but CUDA is not available.*trainer.device=cpu"):
+        distributed.resolve_device(spec)
     assert distributed.resolve_device("auto").type == "cpu"
+
+
+def test_unknown_device_names_the_setting():
+    with pytest.raises(ValueError, match=r"device='gpu' is not a device; use auto, cpu, cuda or cuda:N"):
+        distributed.resolve_device("gpu", name="device")
+

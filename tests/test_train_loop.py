@@ -138,15 +138,15 @@ def test_supervised_loss_on_unlabelled_data_is_refused(tmp_path):
 
 
 class _PoisonedLoss(Loss):
-    """Chamfer-free stand-in: a finite loss, except NaN when the batch holds pair ``bad_index``."""
+    """Chamfer-free stand-in: a finite loss, except NaN for pair ``bad_index`` (every pair: ``None``)."""
 
-    def __init__(self, bad_index: int) -> None:
+    def __init__(self, bad_index: int | None) -> None:
         super().__init__()
         self.bad_index = bad_index
 
     def compute(self, output, batch):
         value = (output.transform[:, :3, 3] ** 2).sum(dim=1)
-        bad = torch.tensor([m["index"] == self.bad_index for m in batch.meta])
+        bad = torch.tensor([self.bad_index is None or m["index"] == self.bad_index for m in batch.meta])
         value = torch.where(bad, torch.full_like(value, float("nan")), value)
         return LossOutput(total=value.mean(), terms={"toy": value.mean()})
 
@@ -154,11 +154,37 @@ class _PoisonedLoss(Loss):
 def test_nan_loss_skips_the_step_and_names_the_sample(tmp_path, monkeypatch):
     monkeypatch.setattr(loop, "build_loss_from_config", lambda config: _PoisonedLoss(bad_index=1))
     cfg = tiny_config(
-        tmp_path, "model.num_neighbors=8", "curriculum=none", "curriculum.stages.full.epochs=1", "trainer.batch_size=4"
+        tmp_path,
+        "model.num_neighbors=8",
+        "curriculum=none",
+        "curriculum.stages.full.epochs=1",
+        "trainer.batch_size=1",
+        "trainer.max_steps_per_epoch=null",
     )
-    with pytest.warns(RuntimeWarning, match=r"step skipped: non-finite loss nan .*sample \d \(meta \{.*'index': 1"):
+    with pytest.warns(RuntimeWarning, match=r"step skipped: non-finite loss nan .*sample 0 \(meta \{.*'index': 1"):
         result = loop.train(cfg)
-    assert load_checkpoint(result["last_checkpoint"])["progress"]["global_step"] == 0
+    state = load_checkpoint(result["last_checkpoint"])
+    assert state["progress"]["global_step"] > 0
+    assert state["best"]["value"] is not None
+
+
+def test_a_run_whose_every_step_is_skipped_fails(tmp_path, monkeypatch):
+    monkeypatch.setattr(loop, "build_loss_from_config", lambda config: _PoisonedLoss(bad_index=None))
+    cfg = tiny_config(tmp_path, "model.num_neighbors=8", "curriculum=none", "curriculum.stages.full.epochs=1")
+    with (
+        pytest.raises(FloatingPointError, match=r"every training step of epoch 1 \(2 of 2\) was skipped"),
+        pytest.warns(RuntimeWarning, match="step skipped"),
+    ):
+        loop.train(cfg)
+    assert not (tmp_path / "checkpoints" / "best.pt").exists()
+    assert not (tmp_path / "metrics.json").exists()
+
+
+def test_a_diverging_learning_rate_does_not_exit_cleanly(tmp_path):
+    cfg = tiny_config(tmp_path, "model.num_neighbors=8", "loss.num_lines=300", "optimizer.lr=1e30")
+    with pytest.raises(FloatingPointError, match=r"skipped|finite"), pytest.warns(RuntimeWarning):
+        loop.train(cfg)
+    assert not (tmp_path / "metrics.json").exists()
 
 
 def test_repeated_nan_losses_stop_the_run(tmp_path, monkeypatch):
@@ -173,3 +199,10 @@ def test_repeated_nan_losses_stop_the_run(tmp_path, monkeypatch):
     )
     with pytest.raises(FloatingPointError, match="1 consecutive steps"), pytest.warns(RuntimeWarning):
         loop.train(cfg)
+
+
+def test_train_on_cuda_without_cuda_fails_before_any_data(tmp_path, monkeypatch):
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    monkeypatch.setattr(loop, "build_split", lambda *args, **kwargs: pytest.fail("data was generated"))
+    with pytest.raises(ValueError, match="CUDA is not available"):
+        loop.train(tiny_config(tmp_path, "trainer.device=cuda"))

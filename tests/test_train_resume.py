@@ -4,6 +4,10 @@ from __future__ import annotations
 
 import os
 import random
+import re
+import stat
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -13,6 +17,7 @@ from hydra import compose, initialize_config_dir
 
 from losses import build_loss
 from train import checkpoint, loop
+from train.evaluate import evaluate
 from train.logging import read_scalars
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -120,6 +125,98 @@ def test_save_is_atomic(tmp_path, monkeypatch):
     monkeypatch.undo()
     assert float(checkpoint.load_checkpoint(path)["value"]) == 1.0
     assert [p.name for p in tmp_path.iterdir()] == ["last.pt"]
+
+
+CORRUPTIONS = {
+    "truncated": lambda data: data[: len(data) // 2],
+    "empty": lambda data: b"",
+    "garbage": lambda data: b"\x80\x02not a checkpoint at all" * 10,
+}
+
+
+def _corrupt(path: Path, how: str) -> None:
+    path.write_bytes(CORRUPTIONS[how](path.read_bytes()))
+
+
+@pytest.mark.parametrize("how", sorted(CORRUPTIONS))
+def test_a_corrupt_checkpoint_is_named(tmp_path, how):
+    path = checkpoint.save_checkpoint({"value": torch.zeros(1000)}, tmp_path / "last.pt")
+    _corrupt(path, how)
+    with pytest.raises(checkpoint.CorruptCheckpointError, match=rf"{re.escape(str(path))}: cannot read the checkpoint"):
+        checkpoint.load_checkpoint(path)
+
+
+@pytest.mark.parametrize("how", sorted(CORRUPTIONS))
+def test_resume_falls_back_to_the_newest_readable_checkpoint(tmp_path, how):
+    folder = tmp_path / "checkpoints"
+    for age, (name, epoch) in enumerate((("old.pt", 1), ("best.pt", 2), ("last.pt", 3))):
+        checkpoint.save_checkpoint({"progress": {"epoch": epoch}}, folder / name)
+        os.utime(folder / name, (1000 + age, 1000 + age))
+    _corrupt(folder / "last.pt", how)
+    expected = rf"{re.escape(str(folder / 'last.pt'))}: cannot read.*resuming from .*best\.pt \(epoch 2\)"
+    with pytest.warns(RuntimeWarning, match=expected):
+        state = checkpoint.load_resume_checkpoint(tmp_path)
+    assert state["path"] == str(folder / "best.pt")
+    _corrupt(folder / "best.pt", "empty")
+    _corrupt(folder / "old.pt", "garbage")
+    with pytest.raises(checkpoint.CorruptCheckpointError, match=r"no readable checkpoint(.|\n)*last\.pt(.|\n)*best"):
+        checkpoint.load_resume_checkpoint(folder / "last.pt")
+
+
+def test_training_resumes_from_best_when_last_is_corrupt(tmp_path, monkeypatch):
+    _interrupt_at(monkeypatch, 2)
+    with pytest.raises(KeyboardInterrupt):
+        loop.train(tiny_config(tmp_path))
+    monkeypatch.undo()
+    last = tmp_path / "checkpoints" / "last.pt"
+    best_epoch = checkpoint.load_checkpoint(tmp_path / "checkpoints" / "best.pt")["progress"]["epoch"]
+    _corrupt(last, "truncated")
+    expected = rf"{re.escape(str(last))}: cannot read the checkpoint.*resuming from .*best\.pt"
+    with pytest.warns(RuntimeWarning, match=expected):
+        result = loop.train(tiny_config(tmp_path, "resume=true"))
+    final = checkpoint.load_checkpoint(result["last_checkpoint"])
+    assert final["progress"]["epoch"] == 3 > best_epoch
+
+
+def test_evaluate_names_a_corrupt_checkpoint(tmp_path):
+    path = checkpoint.save_checkpoint({"value": torch.zeros(100)}, tmp_path / "best.pt")
+    _corrupt(path, "truncated")
+    with initialize_config_dir(str(ROOT / "configs"), version_base="1.3"):
+        cfg = compose("evaluate", overrides=[f"paths.root_dir={ROOT}", f"checkpoint={path}", "device=cpu"])
+    with pytest.raises(checkpoint.CorruptCheckpointError, match=rf"{re.escape(str(path))}: cannot read the checkpoint"):
+        evaluate(cfg)
+
+
+def _dead_pid() -> int:
+    """The id of a process that has exited."""
+    process = subprocess.Popen([sys.executable, "-c", "pass"])
+    process.wait()
+    return process.pid
+
+
+def test_save_removes_temporaries_of_dead_writers(tmp_path):
+    orphan = tmp_path / f".last.pt.{_dead_pid()}.tmp"
+    orphan.write_bytes(b"x" * 100)
+    alive = tmp_path / f".best.pt.{os.getppid()}.tmp"
+    alive.write_bytes(b"being written")
+    unrelated = tmp_path / ".notes.tmp"
+    unrelated.write_text("kept")
+    checkpoint.save_checkpoint({}, tmp_path / "last.pt")
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted([alive.name, unrelated.name, "last.pt"])
+
+
+def test_save_fsyncs_the_folder_after_the_rename(tmp_path, monkeypatch):
+    synced = []
+    original = os.fsync
+
+    def recording_fsync(descriptor):
+        synced.append(("folder" if stat.S_ISDIR(os.fstat(descriptor).st_mode) else "file", os.listdir(tmp_path)))
+        original(descriptor)
+
+    monkeypatch.setattr(os, "fsync", recording_fsync)
+    checkpoint.save_checkpoint({}, tmp_path / "last.pt")
+    assert [kind for kind, _ in synced] == ["file", "folder"]
+    assert synced[-1][1] == ["last.pt"]
 
 
 def test_load_rejects_foreign_files(tmp_path):

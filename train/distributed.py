@@ -57,19 +57,35 @@ class DistContext:
         return self.rank == 0
 
 
-def resolve_device(spec: str, local_rank: int = 0) -> torch.device:
+def resolve_device(spec: str, local_rank: int = 0, *, name: str = "trainer.device") -> torch.device:
     """The device named by ``spec``: ``auto`` (CUDA when available), ``cpu``, ``cuda``, ``cuda:N``.
 
     Under DDP a bare ``cuda`` (or ``auto``) means the GPU of this process's local rank.
+
+    Raises:
+        ValueError: ``spec`` is not a device name, or names CUDA on a machine without it (or a GPU
+            index it does not have); the message names the setting ``name``.
     """
     if spec == "auto":
         spec = "cuda" if torch.cuda.is_available() else "cpu"
-    device = torch.device(spec)
+    try:
+        device = torch.device(spec)
+    except (RuntimeError, TypeError) as error:
+        raise ValueError(f"{name}={spec!r} is not a device; use auto, cpu, cuda or cuda:N ({error})") from error
     if device.type == "cuda":
         if not torch.cuda.is_available():
-            raise RuntimeError(f"trainer.device={spec!r} but CUDA is not available; use trainer.device=cpu")
+            raise ValueError(
+                f"{name}={spec!r} but CUDA is not available on this machine (torch {torch.__version__}, "
+                f"CUDA build: {torch.version.cuda or 'no'}); use {name}=cpu, or {name}=auto to take a GPU only "
+                "when there is one"
+            )
         if device.index is None:
             device = torch.device("cuda", local_rank)
+        if device.index >= torch.cuda.device_count():
+            raise ValueError(
+                f"{name}={spec!r}: this machine has {torch.cuda.device_count()} CUDA device(s), "
+                f"cuda:0 to cuda:{torch.cuda.device_count() - 1}"
+            )
     return device
 
 

@@ -297,7 +297,7 @@ def evaluate(cfg: DictConfig) -> dict[str, Any]:
     """
     if cfg.get("dataset") and cfg.get("data_from"):
         raise ValueError("give either dataset=... or data_from=..., not both")
-    device = distributed.resolve_device(cfg.device)
+    device = distributed.resolve_device(cfg.device, name="device")
     distributed.set_threads(cfg.threads)
     state = load_checkpoint(cfg.checkpoint)
     stored = state["config"]

@@ -49,6 +49,7 @@ from train.checkpoint import (
     find_checkpoint,
     generator_states,
     load_checkpoint,
+    load_resume_checkpoint,
     restore_generator_states,
     restore_rng_state,
     rng_state,
@@ -439,6 +440,13 @@ class Trainer:
                 if self.logger is not None and self.global_step % self.settings.log_every == 0:
                     self.logger.scalars(values, self.global_step, prefix="train/")
         count = totals.pop("_count", 0)
+        if steps and not count:
+            raise FloatingPointError(
+                f"every training step of epoch {self.epoch + 1} ({steps} of {steps}) was skipped for non-finite "
+                f"values (see the warnings above); the model did not train. Lower optimizer.lr (now "
+                f"{self.optimizer.param_groups[0]['lr']:g}) or check the data; the checkpoints of earlier epochs "
+                f"are kept in {self.run_dir / CHECKPOINT_DIR}"
+            )
         means = {name: value / count for name, value in totals.items()} if count else {}
         means["epoch_seconds"] = time.perf_counter() - began
         return means
@@ -583,6 +591,12 @@ class Trainer:
             "output_dir": str(self.run_dir),
             "model": distributed.unwrap(self.model),
         }
+        untrained = self.ctx.is_main and self.val_data is not None and self.best["value"] is None
+        if distributed.broadcast_object(untrained, self.ctx):
+            raise FloatingPointError(
+                f"no validation gave a finite {self.monitor}: the model is not usable (no best.pt was written; "
+                f"{checkpoints / LAST} holds the last state). Lower optimizer.lr or check the data"
+            )
         if not self.ctx.is_main:
             distributed.barrier(self.ctx)
             return results
@@ -713,10 +727,10 @@ def train(cfg: DictConfig) -> dict[str, Any]:
         )
         state = None
         if resume_file is not None:
-            state = load_checkpoint(resume_file, map_location=ctx.device)
+            state = load_resume_checkpoint(resume_file, map_location=ctx.device)
             config = _config_for_resume(config, state["config"])
-            output_dir = Path(resume_file).parent.parent
-            log.info("resuming %s at epoch %d", resume_file, state["progress"]["epoch"])
+            output_dir = Path(state["path"]).parent.parent
+            log.info("resuming %s at epoch %d", state["path"], state["progress"]["epoch"])
         distributed.set_threads(config["trainer"].get("threads"))
         seed_everything(int(config["seed"]), bool(config.get("deterministic", False)))
         loss = build_loss_from_config(config["loss"] if state is not None else cfg.loss)

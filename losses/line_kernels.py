@@ -15,12 +15,18 @@ Candidate search, without ever testing all point-line pairs:
   ``p``. A point is therefore accepted only in the cell whose parameter interval contains its
   own parameter ``t_p``, which finds every candidate exactly once.
 
-Work is ``O(N + L * (cells crossed + points met))``; memory ``O(N + L + hits)``.
+Work is ``O(N + L * (cells crossed + points met))``; memory ``O(N + L + hits)``. Each line is
+scanned in two phases: a branch-free pass over the points of the cells it crosses collects the
+candidates (a data-dependent branch per tested point costs more than the test itself), then the
+neighbour test and the weights run on those few.
 
-The kernels are deliberately serial: torch's OpenMP team already uses the cores, a second
-(numba) thread team only competes with it, and data-loader workers and DDP processes would
-oversubscribe the machine. Serial, they meet the loss targets on the 2-core CPU
-(``scripts/bench_loss.py``).
+Threads: :func:`line_intersections` takes all clouds of a batch (sources and targets) at once
+and runs work items of a few hundred lines in parallel (``numba.prange``; the number of threads
+is numba's, ``NUMBA_NUM_THREADS`` or ``numba.set_num_threads``). Results do not depend on it. On
+a machine shared with other processes, OpenMP threads that spin while they wait (the default of
+the GNU runtime, used by torch too) multiply the time of every parallel region: run with
+``OMP_WAIT_POLICY=PASSIVE`` set before torch is imported, or with one thread
+(``scripts/bench_loss.py --batch 8`` measures both).
 """
 
 from __future__ import annotations
@@ -40,13 +46,19 @@ _MIN_GRID_CELLS = 4096
 
 
 def grid_cell_size(points: np.ndarray, radius: np.ndarray, cell_factor: float) -> float:
-    """Cell edge for the dilated grid: ``cell_factor`` times the median radius, bounded so the
-    grid has at most ``max(4096, 8 N)`` cells (memory linear in ``N``)."""
+    """Cell edge for the dilated grid: ``cell_factor * (N / 1024)^(1/6)`` times the median radius,
+    bounded so the grid has at most ``max(4096, 8 N)`` cells (memory linear in ``N``).
+
+    The growth with ``N`` balances the two costs of a line: cells crossed (``~ 1 / cell``) and
+    points tested (``~ N * cell^2`` on a surface), whose optimum is ``cell ~ N^(-1/3)``, while
+    the radius shrinks as ``N^(-1/2)`` (``scripts/bench_loss.py`` shows the effect).
+    """
     extent = points.max(axis=0) - points.min(axis=0) + 2.0 * radius.max()
     cap = max(_MIN_GRID_CELLS, _GRID_CELL_CAP_PER_POINT * len(points))
-    floor = float((np.prod(np.maximum(extent, 1e-12)) / cap) ** (1.0 / 3.0))
+    floor = float((np.prod(np.maximum(extent, 1e-300)) / cap) ** (1.0 / 3.0))
     floor = max(floor, float(extent.max()) / 1024.0)
-    return max(cell_factor * float(np.median(radius)), floor, 1e-12)
+    factor = cell_factor * (len(points) / 1024.0) ** (1.0 / 6.0)
+    return max(factor * float(np.median(radius)), floor, float(np.finfo(np.float64).tiny))
 
 
 @numba.njit(cache=True)
@@ -185,6 +197,8 @@ def _scan_line(
     cell_start,
     cell_points,
     cell_xyzr,
+    scratch_entry,
+    scratch_d2,
     out_anchor,
     out_weight,
     out_start,
@@ -194,6 +208,7 @@ def _scan_line(
 
     Intersection ``j`` of the line is written to row ``out_start + j`` of ``out_anchor`` and
     ``out_weight`` when that row is below ``out_stop``; the ones beyond are only counted.
+    ``scratch_entry`` and ``scratch_d2`` hold at least as many rows as the grid has entries.
     """
     ox, oy, oz = origins[line, 0], origins[line, 1], origins[line, 2]
     ux, uy, uz = dirs[line, 0], dirs[line, 1], dirs[line, 2]
@@ -208,7 +223,9 @@ def _scan_line(
     ix, sx, tmx, tdx = _axis_setup(ox, ux, grid_min[0], cell, nx, t_start)
     iy, sy, tmy, tdy = _axis_setup(oy, uy, grid_min[1], cell, ny, t_start)
     iz, sz, tmz, tdz = _axis_setup(oz, uz, grid_min[2], cell, nz, t_start)
-    count = 0
+    # Phase 1: collect the candidates in walk order with a branch-free test. Each stored point is
+    # kept only in the cell whose parameter interval holds its foot point (dedup).
+    found = 0
     t_enter = -np.inf
     while True:
         # Next boundary crossed, and whether this is the last cell on the line.
@@ -233,52 +250,9 @@ def _scan_line(
             t = dx * ux + dy * uy + dz * uz
             r = cell_xyzr[3, s]
             d2 = max(dx * dx + dy * dy + dz * dz - t * t, 0.0)
-            # Most stored points are far from the line: reject on distance first, then keep the
-            # point only in the cell whose parameter interval holds its foot point (dedup).
-            if d2 + eps2 >= r * r:
-                continue
-            if t < t_enter or t >= t_exit:
-                continue
-            i = cell_points[s]
-            d = math.sqrt(d2 + eps2)
-            row = out_start + count
-            write = row < out_stop
-            if mode == MODE_CANDIDATES:
-                if write:
-                    out_anchor[row] = i
-                    out_weight[row, 0] = 1.0
-                count += 1
-                continue
-            # MODE_CONVEX: neighbours must be candidates under their own radius;
-            # MODE_TRIPLET: neighbours must be within the anchor's radius.
-            ok = True
-            total = d
-            for j in range(k):
-                nb = neighbors[i, j]
-                dn = _line_distance(points, nb, ox, oy, oz, ux, uy, uz, eps2)
-                limit = r if mode == MODE_TRIPLET else radius[nb]
-                if dn >= limit:
-                    ok = False
-                    break
-                total += dn
-            if not ok:
-                continue
-            count += 1
-            if not write:
-                continue
-            out_anchor[row] = i
-            if mode == MODE_PIERCE and _pierce_weights(
-                points, i, neighbors[i, 0], neighbors[i, 1], ox, oy, oz, ux, uy, uz, out_weight[row]
-            ):
-                continue
-            if total > 0.0:
-                out_weight[row, 0] = d / total
-                for j in range(k):
-                    dn = _line_distance(points, neighbors[i, j], ox, oy, oz, ux, uy, uz, eps2)
-                    out_weight[row, j + 1] = dn / total
-            else:
-                for j in range(k + 1):
-                    out_weight[row, j] = 1.0 / (k + 1)
+            scratch_entry[found] = s
+            scratch_d2[found] = d2
+            found += (d2 + eps2 < r * r) & (t >= t_enter) & (t < t_exit)
         if last:
             break
         t_enter = t_exit
@@ -291,6 +265,51 @@ def _scan_line(
         else:
             iz += sz
             tmz += tdz
+    # Phase 2: the neighbour test and the weights of each candidate.
+    count = 0
+    for j in range(found):
+        s = scratch_entry[j]
+        i = cell_points[s]
+        r = cell_xyzr[3, s]
+        d = math.sqrt(scratch_d2[j] + eps2)
+        row = out_start + count
+        write = row < out_stop
+        if mode == MODE_CANDIDATES:
+            if write:
+                out_anchor[row] = i
+                out_weight[row, 0] = 1.0
+            count += 1
+            continue
+        # MODE_CONVEX: neighbours must be candidates under their own radius;
+        # MODE_TRIPLET: neighbours must be within the anchor's radius.
+        ok = True
+        total = d
+        for m in range(k):
+            nb = neighbors[i, m]
+            dn = _line_distance(points, nb, ox, oy, oz, ux, uy, uz, eps2)
+            limit = r if mode == MODE_TRIPLET else radius[nb]
+            if dn >= limit:
+                ok = False
+                break
+            total += dn
+        if not ok:
+            continue
+        count += 1
+        if not write:
+            continue
+        out_anchor[row] = i
+        if mode == MODE_PIERCE and _pierce_weights(
+            points, i, neighbors[i, 0], neighbors[i, 1], ox, oy, oz, ux, uy, uz, out_weight[row]
+        ):
+            continue
+        if total > 0.0:
+            out_weight[row, 0] = d / total
+            for m in range(k):
+                dn = _line_distance(points, neighbors[i, m], ox, oy, oz, ux, uy, uz, eps2)
+                out_weight[row, m + 1] = dn / total
+        else:
+            for m in range(k + 1):
+                out_weight[row, m] = 1.0 / (k + 1)
     return count
 
 
@@ -355,6 +374,9 @@ def _scan_lines(
     p0, p1 = point_offsets[cloud], point_offsets[cloud + 1]
     c0, c1 = cell_offsets[cloud], cell_offsets[cloud + 1]
     cloud_points, cloud_radius, cloud_neighbors = points[p0:p1], radius[p0:p1], neighbors[p0:p1]
+    entries = cell_start[c1 - 1] - cell_start[c0]
+    scratch_entry = np.empty(entries + 1, dtype=np.int64)
+    scratch_d2 = np.empty(entries + 1)
     row = out_start
     for line in range(first, stop):
         n = _scan_line(
@@ -372,6 +394,8 @@ def _scan_lines(
             cell_start[c0:c1],
             cell_points,
             cell_xyzr,
+            scratch_entry,
+            scratch_d2,
             out_anchor,
             out_weight,
             row,

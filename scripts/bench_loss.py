@@ -14,9 +14,9 @@ every point of *one* cloud against every line, with no spatial index; the column
 ``ours / all-pairs`` is our forward+backward over *both* clouds divided by it. Peak memory is
 measured in a fresh subprocess: the largest resident-set size seen during one forward+backward
 (sampled every millisecond from ``/proc/self/statm``) above the resident size just before it,
-after a small warm-up call. The dense reference of ``tests/line_reference.py`` (every point-line
-distance materialised) runs where ``N * L`` is at most ``--dense-limit``; ``dense / ours`` is
-its time divided by ours.
+after a small warm-up call (on CUDA: the rise of ``torch.cuda.max_memory_allocated``). The
+dense reference of ``tests/line_reference.py`` (every point-line distance materialised) runs
+where ``N * L`` is at most ``--dense-limit``; ``dense / ours`` is its time divided by ours.
 
 ``--batch B`` instead times a batch of ``B`` pairs with 1 and 2 threads (torch and numba alike),
 on a quiet machine and with another process spinning on one core (started and stopped here).
@@ -182,6 +182,17 @@ def _memory_probe(n: int, n_lines: int, variant: str, backend: str) -> None:
     print(f"{mem.peak_mb:.1f}")
 
 
+def cuda_peak_memory_mb(src, tgt, options) -> float:
+    """Peak MB of CUDA memory allocated during one forward+backward, above the allocation before it."""
+    torch.cuda.synchronize()
+    torch.cuda.reset_peak_memory_stats()
+    base = torch.cuda.memory_allocated()
+    leaf = src.clone().requires_grad_(True)
+    line_intersection_metric(leaf[None], tgt[None], options=options).value.sum().backward()
+    torch.cuda.synchronize()
+    return (torch.cuda.max_memory_allocated() - base) / 2**20
+
+
 def time_dense(src, tgt, options, device):
     """Milliseconds of one dense forward+backward on the same kind of lines."""
     origins, dirs = sample_lines(
@@ -278,7 +289,10 @@ def main() -> None:
         for n_lines in args.lines:
             options = LineMetricOptions.for_variant(args.variant, num_lines=n_lines, backend=args.backend)
             fwd, bwd = time_sparse(src, tgt, options, args.repeats, args.device)
-            peak = peak_memory_mb(n, n_lines, args.variant, args.backend) if args.device == "cpu" else math.nan
+            if args.device == "cpu":
+                peak = peak_memory_mb(n, n_lines, args.variant, args.backend)
+            else:
+                peak = cuda_peak_memory_mb(src, tgt, options)
             ref = time_all_pairs(src, tgt, n_lines, min(3, args.repeats))
             dense = time_dense(src, tgt, options, args.device) if n * n_lines <= args.dense_limit else math.nan
             row = {
@@ -286,7 +300,7 @@ def main() -> None:
                 "n_lines": n_lines,
                 "fwd_ms": round(fwd, 2),
                 "bwd_ms": round(bwd, 2),
-                "peak_mb": None if math.isnan(peak) else round(peak, 1),
+                "peak_mb": round(peak, 1),
                 "all_pairs_ms": round(ref, 2),
                 "ratio_all_pairs": round((fwd + bwd) / ref, 2),
                 "dense_ms": None if math.isnan(dense) else round(dense, 1),
@@ -296,11 +310,10 @@ def main() -> None:
             if args.json:
                 print(json.dumps(row), flush=True)
             else:
-                peak_txt = "—" if row["peak_mb"] is None else f"{peak:.0f}"
                 dense_txt = "—" if row["dense_ms"] is None else f"{row['dense_ms']:.0f}"
                 ratio_txt = "—" if row["ratio"] is None else f"{row['ratio']:.0f}x"
                 print(
-                    f"| {n} | {n_lines} | {fwd:.1f} | {bwd:.1f} | {fwd + bwd:.1f} | {peak_txt} | {ref:.1f} "
+                    f"| {n} | {n_lines} | {fwd:.1f} | {bwd:.1f} | {fwd + bwd:.1f} | {peak:.0f} | {ref:.1f} "
                     f"| {row['ratio_all_pairs']:.2f} | {dense_txt} | {ratio_txt} |",
                     flush=True,
                 )

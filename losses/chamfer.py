@@ -8,6 +8,7 @@ gathered afterwards and are differentiable w.r.t. both clouds.
 from __future__ import annotations
 
 import math
+import numbers
 
 import torch
 
@@ -90,7 +91,7 @@ def welsch_scale(distances: torch.Tensor, nu0: float) -> torch.Tensor:
 
 def check_nu0(nu0: float) -> None:
     """Raise ``ValueError`` unless ``nu0`` is a finite number > 0."""
-    if isinstance(nu0, bool) or not isinstance(nu0, int | float) or not (math.isfinite(nu0) and nu0 > 0):
+    if isinstance(nu0, bool) or not isinstance(nu0, numbers.Real) or not (math.isfinite(nu0) and nu0 > 0):
         raise ValueError(f"nu0 must be a finite number > 0, got {nu0!r}")
 
 

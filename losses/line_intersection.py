@@ -73,6 +73,7 @@ does (reference-notes §1.5), each still overridable:
 from __future__ import annotations
 
 import math
+import numbers
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -172,7 +173,7 @@ class LineMetricOptions:
                 raise ValueError(f"{name} must be one of {', '.join(allowed)}, got {getattr(self, name)!r}")
         for name in ("num_lines", "k"):
             value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, int | np.integer) or value < 1:
+            if isinstance(value, bool) or not isinstance(value, numbers.Integral) or value < 1:
                 raise ValueError(f"{name} must be an integer >= 1, got {value!r}")
         positive = {
             "delta_factor": self.delta_factor,
@@ -181,7 +182,7 @@ class LineMetricOptions:
             "cell_factor": self.cell_factor,
         }
         for name, value in positive.items():
-            if not (isinstance(value, int | float) and math.isfinite(value) and value > 0):
+            if not (isinstance(value, numbers.Real) and math.isfinite(value) and value > 0):
                 raise ValueError(f"{name} must be a finite number > 0, got {value!r}")
         if self.max_hits is not None and self.max_hits < 1:
             raise ValueError(f"max_hits must be >= 1 or None, got {self.max_hits}")

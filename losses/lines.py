@@ -131,7 +131,7 @@ def sample_line_batch(
     joint_hi = torch.maximum(src_summary[:, 3:6], tgt_summary[:, 3:6])
     center = (joint_lo + joint_hi) / 2
     cover = torch.maximum(_farthest_from(src, src_lengths, center), _farthest_from(tgt, tgt_lengths, center))
-    # The only host transfer of the sampler: (B, 24) numbers.
+    # The only host transfer of the sampler: (B, 30) numbers.
     stats = torch.cat([src_summary, tgt_summary, center, cover[:, None], joint_lo, joint_hi], dim=1).cpu().numpy()
     batch = src.shape[0]
     origins = np.empty((batch, num_lines, 3))

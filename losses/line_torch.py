@@ -5,11 +5,12 @@ convex or barycentric weights and closest-point matching, batched over ``B`` sam
 padding masks, and never a per-sample host round trip (a few syncs per batch remain where a
 result size is data dependent: ``nonzero``, ``repeat_interleave``).
 
-There is no spatial index: every point is tested against every line, in chunks of lines that
-keep the ``(chunk, N, 3)`` temporaries under a fixed number of elements. On a GPU that is a
-few hundred megabytes of memory traffic per 20000 lines and 1024 points; on a CPU the numba
-kernels are much faster (``scripts/bench_loss.py --backend torch``). The selection runs in
-float64 whatever the input dtype, so the candidate sets agree with the numba kernels.
+There is no spatial index: every point is tested against every line with two batched matrix
+products per chunk of lines (``(B, chunk, N)`` temporaries under a fixed number of elements),
+a prefilter with a safety margin; the few pairs that pass are then decided with the kernels'
+exact formula. The selection runs in float64 whatever the input dtype, so the candidate sets
+agree with the numba kernels. On a CPU the numba kernels are much faster
+(``scripts/bench_loss.py --backend torch``).
 """
 
 from __future__ import annotations
@@ -121,23 +122,39 @@ def torch_hits(
     n_lines = origins.shape[1]
     k = neighbors.shape[2]
     flat_o, flat_u = origins.reshape(-1, 3), dirs.reshape(-1, 3)
-    sample_of_line = torch.arange(batch * n_lines, device=points.device) // n_lines
     r2 = torch.where(valid, radius.square(), -1.0)
-    chunk = max(1, chunk_elements(points.device) // n)
-    found_line, found_point, found_d2 = [], [], []
-    for g0 in range(0, batch * n_lines, chunk):
-        g1 = min(batch * n_lines, g0 + chunk)
-        sample = sample_of_line[g0:g1]
-        rel = points[sample] - flat_o[g0:g1, None]
-        t = (rel * flat_u[g0:g1, None]).sum(-1)
-        d2 = (rel.square().sum(-1) - t.square()).clamp_min(0.0)
-        hit = (d2 + eps2 < r2[sample]) & line_valid.reshape(-1)[g0:g1, None]
-        rows, cols = hit.nonzero(as_tuple=True)
-        found_line.append(rows + g0)
-        found_point.append(cols)
-        found_d2.append(d2[rows, cols])
+    line_ok = line_valid.reshape(-1)
+    # Prefilter with matrix products on coordinates centred per sample (so that the rounding of
+    # the expanded squares stays far below r^2), then decide exactly as the numba kernel does.
+    center = (points * valid[..., None]).sum(dim=1, keepdim=True) / valid.sum(dim=1)[:, None, None]
+    p_c = points - center
+    o_c = origins - center
+    p_sq = p_c.square().sum(-1)
+    o_sq = o_c.square().sum(-1)
+    o_dot_u = (o_c * dirs).sum(-1)
+    scale = p_sq.masked_fill(~valid, 0.0).amax(dim=1) + o_sq.amax(dim=1)
+    limit = torch.where(valid, r2 + 1e-9 * scale[:, None], -torch.inf)
+    chunk = max(1, chunk_elements(points.device) // (batch * n))
+    found_line, found_point = [], []
+    for l0 in range(0, n_lines, chunk):
+        l1 = min(n_lines, l0 + chunk)
+        po = torch.bmm(o_c[:, l0:l1], p_c.transpose(1, 2))
+        t = torch.bmm(dirs[:, l0:l1], p_c.transpose(1, 2)) - o_dot_u[:, l0:l1, None]
+        d2 = p_sq[:, None] - 2.0 * po + o_sq[:, l0:l1, None] - t.square()
+        maybe = d2 + eps2 < limit[:, None]
+        b, l, i = maybe.nonzero(as_tuple=True)
+        found_line.append(b * n_lines + l + l0)
+        found_point.append(i)
     line, anchor = torch.cat(found_line), torch.cat(found_point)
-    d_anchor = (torch.cat(found_d2) + eps2).sqrt()
+    line, order = torch.sort(line, stable=True)
+    anchor = anchor[order]
+    sample = line // n_lines
+    rel = points[sample, anchor] - flat_o[line]
+    t = (rel * flat_u[line]).sum(-1)
+    d2 = (rel.square().sum(-1) - t.square()).clamp_min(0.0)
+    exact = (d2 + eps2 < r2[sample, anchor]) & line_ok[line]
+    line, anchor, d2 = line[exact], anchor[exact], d2[exact]
+    d_anchor = (d2 + eps2).sqrt()
     sample = line // n_lines
     if mode == line_kernels.MODE_CANDIDATES:
         members = (anchor + sample * n)[:, None]

@@ -32,9 +32,15 @@ the GNU runtime, used by torch too) multiply the time of every parallel region: 
 from __future__ import annotations
 
 import math
+import os
 
 import numba
 import numpy as np
+
+if "NUMBA_THREADING_LAYER" not in os.environ and "NUMBA_THREADING_LAYER_PRIORITY" not in os.environ:
+    # Try OpenMP first: numba's default tries TBB first and warns when a library loaded earlier
+    # (Open3D ships one) is too old for it.
+    numba.config.THREADING_LAYER_PRIORITY = ["omp", "tbb", "workqueue"]
 
 MODE_CANDIDATES = 0  # Insec1: every candidate point is an intersection
 MODE_CONVEX = 1  # paper Eq. (7): candidates whose k nearest neighbours are candidates too

@@ -596,10 +596,16 @@ class RobustOptions:
         start_poses(self.starts)
 
 
+DEFAULT_ROBUST = RobustOptions()
+"""The settings of the ``register`` default."""
+
+
 def polish_scales(options: RobustOptions, spacing: float) -> np.ndarray:
     """Welsch scales of the IRLS polish: ``polish_steps`` values falling geometrically from
     ``polish_nu`` to ``polish_end`` times the target's point ``spacing`` over the first half,
     then held (the last steps settle at the fine scale)."""
+    if options.polish_steps == 0:
+        return np.zeros(0)
     fine = min(options.polish_end * spacing, options.polish_nu)
     falling = np.geomspace(options.polish_nu, fine, max((options.polish_steps + 1) // 2, 1))
     return np.concatenate([falling, np.full(options.polish_steps - len(falling), fine)])[: options.polish_steps]

@@ -35,12 +35,12 @@ sys.path.insert(0, str(ROOT))
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
+import train.baselines  # noqa: E402  (registers icp_point)
+import train.solvers  # noqa: E402,F401  (registers robust)
 from datasets.partial_vs_whole import partial_vs_whole_pairs  # noqa: E402
 from linereg.io import write_point_cloud  # noqa: E402
 from linereg.metrics import rotation_error_deg  # noqa: E402
 from linereg.paths import shared_data_dir  # noqa: E402
-import train.baselines  # noqa: E402,F401  (registers icp_point)
-import train.solvers  # noqa: E402,F401  (registers robust)
 from train.methods import build_method  # noqa: E402
 
 

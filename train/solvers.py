@@ -674,13 +674,17 @@ class RobustRegistration(_Solver):
         self.monitor = monitor
         self.center = center
         self._coarse_loss = _BatchedChamferWelsch(options.coarse_nu0)
-        self._refine_loss = build_loss(
-            {
-                "name": "line_intersection",
-                "intersection": "candidates",
-                "num_lines": options.refine_lines,
-                "seed": seed,
-            }
+        self._refine_loss = (
+            build_loss(
+                {
+                    "name": "line_intersection",
+                    "intersection": "candidates",
+                    "num_lines": options.refine_lines,
+                    "seed": seed,
+                }
+            )
+            if options.refine_iterations
+            else None
         )
 
     def __call__(self, src, tgt, src_normals=None, tgt_normals=None, *, init: np.ndarray | None = None) -> MethodResult:

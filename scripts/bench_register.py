@@ -1,100 +1,146 @@
-"""Time the registration of one pair: the register default against the paper's solver.
+"""Time ``register``: the solver and the whole command, quiet and beside a busy core, against ICP.
 
-    python scripts/bench_register.py                  # the README row (5 Human pairs, 1024 points)
-    python scripts/bench_register.py --pairs 10 --threads 2
+    python scripts/bench_register.py                 # 5 partial-vs-whole airplane pairs, 1024 vs 2048 points
+    python scripts/bench_register.py --pairs 10 --commands 3 --json
 
-Every method runs on the same Human-protocol pairs (needs the shared data); each pair is
-registered once after a warm-up pair. The table gives the median wall-clock time per pair, the
-number of Adam iterations, the time per iteration (coarse multi-start iterations count once per
-iteration, all starts together), the median Err_R, and the time relative to the paper's solver
-(one start, 500 iterations of the paper's line metric with 15000 lines) measured in the same run.
+Pairs: :mod:`datasets.partial_vs_whole` on the ModelNet40 airplanes of the shared data (source a
+hidden-point-removal view of 1024 points, target 2048 points of the whole shape). In one run,
+first on the machine as it is ("quiet"), then again while this script keeps one extra
+CPU-bound process spinning ("busy core"), it measures
+
+* the solver (``RobustRegistration``, the ``register`` default) per pair, after a warm-up pair;
+* Open3D point-to-point ICP on the same pairs (the reference of the ratios);
+* the wall time of ``python -m train.register source=... target=...`` (start-up included), and
+  of ``python -c "import torch"`` (the floor any torch command pays).
+
+Absolute times depend on the machine and on what else runs: compare the ratios of one run.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import multiprocessing
+import os
 import statistics
+import subprocess
 import sys
+import tempfile
+import time
 from pathlib import Path
 
-import numpy as np
-import torch
+ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT))
 
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+import numpy as np  # noqa: E402
+import torch  # noqa: E402
 
-from linereg.metrics import rotation_error_deg
-from train.benchmark import build_pairs
-from train.methods import build_method
-
-METHODS = {
-    "register default (4 starts)": {"name": "adam_loss", "stages": "default"},
-    "register default, 1 start": {"name": "adam_loss", "stages": "default", "starts": 1},
-    "paper solver": {"name": "adam_loss", "stages": "paper", "starts": 1},
-    "icp_point (Open3D)": {"name": "icp_point"},
-}
-REFERENCE = "paper solver"
+import train.baselines  # noqa: E402  (registers icp_point)
+import train.solvers  # noqa: E402,F401  (registers robust)
+from datasets.partial_vs_whole import partial_vs_whole_pairs  # noqa: E402
+from linereg.io import write_point_cloud  # noqa: E402
+from linereg.metrics import rotation_error_deg  # noqa: E402
+from linereg.paths import shared_data_dir  # noqa: E402
+from train.methods import build_method  # noqa: E402
 
 
-def _iterations(method) -> int | None:
-    """Adam iterations of a solver (``None`` for the classical methods)."""
-    stages = getattr(method, "stages", None)
-    return None if stages is None else sum(stage.iterations for stage in stages)
+def _spin() -> None:
+    """A CPU-bound loop (the busy core)."""
+    while True:
+        pass
+
+
+def _solver_times(method, pairs) -> tuple[list[float], list[float]]:
+    """Seconds and Err_R (deg) of ``method`` on every pair after a warm-up on the first."""
+    method(pairs[0].src_xyz, pairs[0].tgt_xyz)
+    seconds, errors = [], []
+    for pair in pairs[1:]:
+        result = method(pair.src_xyz, pair.tgt_xyz)
+        seconds.append(result.seconds)
+        R_gt = torch.as_tensor(pair.gt_transform[:3, :3], dtype=torch.float64)
+        errors.append(float(rotation_error_deg(torch.as_tensor(result.transform[:3, :3]), R_gt)))
+    return seconds, errors
+
+
+def _wall(command: list[str], cwd: Path, repeats: int) -> float:
+    """Median wall-clock seconds of ``command`` (must succeed)."""
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")]))
+    times = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        subprocess.run(command, cwd=cwd, env=env, check=True, capture_output=True)
+        times.append(time.perf_counter() - start)
+    return statistics.median(times)
+
+
+def measure(pairs, folder: Path, commands: int) -> dict[str, float]:
+    """One row: solver, ICP and command times (medians) and their ratios."""
+    robust, robust_err = _solver_times(build_method({"name": "robust"}), pairs)
+    icp, icp_err = _solver_times(build_method({"name": "icp_point"}), pairs)
+    register = [sys.executable, "-m", "train.register", "source=src.ply", "target=tgt.ply", "progress=false"]
+    command = _wall(register, folder, commands)
+    floor = _wall([sys.executable, "-c", "import torch"], folder, commands)
+    row = {
+        "solver_s": statistics.median(robust),
+        "solver_max_s": max(robust),
+        "solver_err_r_deg_median": float(np.median(robust_err)),
+        "icp_s": statistics.median(icp),
+        "icp_err_r_deg_median": float(np.median(icp_err)),
+        "command_s": command,
+        "import_torch_s": floor,
+    }
+    row["solver_vs_icp"] = row["solver_s"] / row["icp_s"]
+    row["command_vs_import_torch"] = command / floor
+    return row
 
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--pairs", type=int, default=5)
-    parser.add_argument("--points", type=int, default=1024)
-    parser.add_argument("--threads", type=int, default=None, help="torch CPU threads (default: torch's)")
+    parser.add_argument("--pairs", type=int, default=5, help="timed pairs (one more is the warm-up)")
+    parser.add_argument("--commands", type=int, default=3, help="runs of each command")
     parser.add_argument("--json", action="store_true")
     args = parser.parse_args(argv)
-    if args.threads:
-        torch.set_num_threads(args.threads)
-    pairs = build_pairs({"name": "human", "num_points": args.points}, pairs=args.pairs + 1, seed=0)
-    warmup, pairs = pairs[0], pairs[1:]
-    rows = []
-    for label, config in METHODS.items():
-        method = build_method(config)
-        method(warmup.src_xyz, warmup.tgt_xyz, warmup.src_normals, warmup.tgt_normals)
-        seconds, errors = [], []
-        for pair in pairs:
-            result = method(pair.src_xyz, pair.tgt_xyz, pair.src_normals, pair.tgt_normals)
-            seconds.append(result.seconds)
-            R_pred = torch.as_tensor(result.transform[:3, :3], dtype=torch.float64)
-            R_gt = torch.as_tensor(pair.gt_transform[:3, :3], dtype=torch.float64)
-            errors.append(float(rotation_error_deg(R_pred, R_gt)))
-        iterations = _iterations(method)
-        median = statistics.median(seconds)
-        rows.append(
-            {
-                "method": label,
-                "seconds_median": median,
-                "seconds_max": max(seconds),
-                "iterations": iterations,
-                "ms_per_iteration": None if iterations is None else 1000 * median / iterations,
-                "err_r_deg_median": float(np.median(errors)),
-            }
-        )
-    reference = next(row["seconds_median"] for row in rows if row["method"] == REFERENCE)
-    for row in rows:
-        row["time_vs_paper_solver"] = row["seconds_median"] / reference
-    if args.json:
-        for row in rows:
-            print(json.dumps(row))
-        return 0
-    print(f"{len(pairs)} Human pairs, {args.points} points, torch threads {torch.get_num_threads()}\n")
-    print(
-        "| method | time/pair median (s) | max (s) | iterations | ms/iteration | median Err_R (deg) "
-        "| time vs paper solver |"
+    data = shared_data_dir()
+    if data is None:
+        parser.error("the shared data folder was not found (set $LINEREG_SHARED_DATA)")
+    pairs = partial_vs_whole_pairs(
+        data / "modelnet40_normal_resampled", pairs=args.pairs + 1, seed=0, patterns=["airplane/*.txt"]
     )
-    print("|---|---|---|---|---|---|---|")
-    for row in rows:
-        per_iteration = "" if row["ms_per_iteration"] is None else f"{row['ms_per_iteration']:.1f}"
+    rows = {}
+    with tempfile.TemporaryDirectory() as folder:
+        folder = Path(folder)
+        write_point_cloud(folder / "src.ply", pairs[1].src_xyz)
+        write_point_cloud(folder / "tgt.ply", pairs[1].tgt_xyz)
+        rows["quiet"] = measure(pairs, folder, args.commands)
+        spinner = multiprocessing.Process(target=_spin, daemon=True)
+        spinner.start()
+        try:
+            rows["busy core"] = measure(pairs, folder, args.commands)
+        finally:
+            spinner.terminate()
+            spinner.join()
+    for key in ("solver_s", "command_s"):
+        rows["busy core"][f"{key}_busy_vs_quiet"] = rows["busy core"][key] / rows["quiet"][key]
+    if args.json:
+        print(json.dumps(rows))
+        return 0
+    print(f"{args.pairs} partial-vs-whole airplane pairs (1024 vs 2048 points), {os.cpu_count()} CPUs\n")
+    print(
+        "| machine | solver median (s) | max (s) | median Err_R (deg) | ICP (s) | solver / ICP "
+        "| command wall (s) | import torch (s) | command / import torch |"
+    )
+    print("|---|---|---|---|---|---|---|---|---|")
+    for name, row in rows.items():
         print(
-            f"| {row['method']} | {row['seconds_median']:.2f} | {row['seconds_max']:.2f} | {row['iterations'] or ''} | "
-            f"{per_iteration} | {row['err_r_deg_median']:.3f} | {row['time_vs_paper_solver']:.3f}x |"
+            f"| {name} | {row['solver_s']:.2f} | {row['solver_max_s']:.2f} | {row['solver_err_r_deg_median']:.3f} "
+            f"| {row['icp_s']:.3f} | {row['solver_vs_icp']:.0f}x | {row['command_s']:.2f} "
+            f"| {row['import_torch_s']:.2f} | {row['command_vs_import_torch']:.2f}x |"
         )
+    busy = rows["busy core"]
+    print(
+        f"\nbusy core / quiet: solver {busy['solver_s_busy_vs_quiet']:.2f}x, "
+        f"command {busy['command_s_busy_vs_quiet']:.2f}x"
+    )
     return 0
 
 

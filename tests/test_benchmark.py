@@ -263,3 +263,58 @@ def test_threedmatch_pairs_are_aligned_by_their_ground_truth(shared_data):
     assert [pair.meta["dataset"] for pair in pairs] == ["threedmatch", "geotransformer_demo"]
     assert pairs[0].meta["source"] == "cloud_bin_4" and pairs[0].meta["target"] == "cloud_bin_0"
     _assert_ground_truth_aligns(pairs, absolute=None)
+
+
+def test_run_benchmark_resumes_from_its_journal(tmp_path):
+    pairs = [_tiny_pair(1), _tiny_pair(2)]
+    journal = tmp_path / "records.jsonl"
+    first = run_benchmark(pairs[:1], build_methods(["icp_point"], {}), progress=False, journal=journal)
+    assert len(journal.read_text().splitlines()) == 1
+
+    seen = []
+
+    def identity(src, tgt, src_normals=None, tgt_normals=None):
+        seen.append(len(src))
+        return MethodResult(transform=np.eye(4), seconds=0.0)
+
+    resumed = run_benchmark(pairs, {"icp_point": identity}, progress=False, journal=journal)
+    assert seen == [len(pairs[1].src_xyz)]  # pair 0 came from the journal
+    assert resumed[0] == json.loads(json.dumps(first[0]))
+    assert len(resumed) == 2 and len(journal.read_text().splitlines()) == 2
+
+
+def test_partial_vs_whole_pairs_from_meshes_and_point_files(tmp_path):
+    from datasets.partial_vs_whole import PartialVsWholeSettings, partial_vs_whole_pairs
+
+    procedural_shape(np.random.default_rng(3)).export(tmp_path / "shape.off")
+    points, _ = trimesh.sample.sample_surface(procedural_shape(np.random.default_rng(4)), 5000, seed=4)
+    np.savetxt(tmp_path / "cloud.xyz", points)
+    (tmp_path / "notes.md").write_text("not a shape")
+    settings = PartialVsWholeSettings(source_points=256, target_points=512, dense_points=4000)
+    pairs = partial_vs_whole_pairs(tmp_path, pairs=4, seed=1, settings=settings)
+    again = partial_vs_whole_pairs(tmp_path, pairs=4, seed=1, settings=settings)
+
+    assert [Path(pair.meta["file"]).name for pair in pairs] == ["cloud.xyz", "shape.off"] * 2
+    for pair, twin in zip(pairs, again, strict=True):
+        assert pair.src_xyz.shape == (256, 3) and pair.tgt_xyz.shape == (512, 3)
+        np.testing.assert_array_equal(pair.tgt_xyz, twin.tgt_xyz)
+        truth = pair.gt_transform.astype(np.float64)
+        moved = pair.src_xyz @ truth[:3, :3].T + truth[:3, 3]
+        aligned = np.median(cKDTree(pair.tgt_xyz).query(moved)[0])
+        unaligned = np.median(cKDTree(pair.tgt_xyz).query(pair.src_xyz)[0])
+        assert aligned < 0.75 * unaligned and aligned < 0.15
+    with pytest.raises(FileNotFoundError, match="not a folder of shapes"):
+        partial_vs_whole_pairs(tmp_path / "shape.off")
+    with pytest.raises(FileNotFoundError, match="no mesh or point file"):
+        partial_vs_whole_pairs(tmp_path, patterns=["*.stl"])
+
+
+@pytest.mark.shared_data
+def test_partial_vs_whole_source_on_the_shared_airplanes(shared_data):
+    config = {"name": "partial_vs_whole", "root": "modelnet40_normal_resampled", "patterns": ["airplane/*.txt"]}
+    from train.benchmark import build_pairs
+
+    pairs = build_pairs(config, pairs=2, seed=0)
+    assert [pair.src_xyz.shape for pair in pairs] == [(1024, 3)] * 2
+    assert [pair.tgt_xyz.shape for pair in pairs] == [(2048, 3)] * 2
+    assert all(np.abs(pair.tgt_xyz).max() <= 1.0 + 0.2 * np.sqrt(3) + 1e-5 for pair in pairs)

@@ -4,6 +4,9 @@ from __future__ import annotations
 
 import json
 import math
+import os
+import subprocess
+import sys
 
 import numpy as np
 import pytest
@@ -16,7 +19,7 @@ from linereg.metrics import registration_errors
 from linereg.paths import REPO_ROOT
 from linereg.se3 import euler_to_rotmat, rotation_angle, rt_to_matrix
 from train.methods import build_method
-from train.register import register_files
+from train.register import RegisterError, parse_init, register_files
 from train.solvers import start_poses
 
 
@@ -145,15 +148,17 @@ def test_register_command_writes_its_outputs(tmp_path):
     registered = read_point_cloud(out / "registered.ply")
     np.testing.assert_allclose(registered.xyz, apply(estimate, src), atol=1e-5)
     saved = json.loads((out / "result.json").read_text())
-    assert saved["metrics"]["err_r_deg"] < 1.0 and len(saved["loss_curve"]) > 0 and saved["seconds"] > 0
+    assert saved["metrics"]["err_r_deg"] < 1.0 and saved["seconds"] > 0
+    assert saved["fitness"] > 0.9 and 0 < saved["inlier_rmse"] < 0.1 and saved["converged"] is True
     assert report["source_points"] == 700 and report["target_points"] == 900
+    assert not (out / "registration.png").exists()
 
 
 def test_register_with_a_chosen_loss_and_the_svd_solver(tmp_path):
     src = surface(500, 3)
     write_point_cloud(tmp_path / "a.xyz", src)
     write_point_cloud(tmp_path / "b.xyz", apply(pose([5, 0, 0], [0.05, 0, 0]), src))
-    for overrides in ({"loss": "chamfer", "iterations": 60}, {"solver": "svd", "svd.iterations": 10}):
+    for overrides in ({"solver": "adam", "loss": "chamfer", "iterations": 60}, {"solver": "svd", "svd.iterations": 10}):
         cfg = _compose(source=tmp_path / "a.xyz", target=tmp_path / "b.xyz", num_points=400, **overrides)
         _, report = register_files(cfg, tmp_path / "run")
         assert np.isfinite(np.array(report["transform"])).all()
@@ -191,3 +196,73 @@ def test_non_rigid_ground_truth_is_rejected(tmp_path):
 def test_unknown_config_key_is_an_error():
     with pytest.raises(Exception, match="nonsense"):
         _compose(source="a", target="b", nonsense=1)
+
+
+def test_init_guess_is_applied_before_the_search(tmp_path):
+    src = surface(600, 6)
+    T = pose([170, 0, 20], [0.4, 0.1, 0.0])  # beyond the multi-start's reach without a guess
+    write_point_cloud(tmp_path / "a.ply", src)
+    write_point_cloud(tmp_path / "b.ply", apply(T, src))
+    guess = pose([165, 3, 15], [0.35, 0.1, 0.05])
+    write_transform(tmp_path / "init.txt", guess)
+    for init in (tmp_path / "init.txt", ",".join(f"{v:.17g}" for v in guess.ravel())):
+        cfg = _compose(source=tmp_path / "a.ply", target=tmp_path / "b.ply", init=f"'{init}'", num_points=400)
+        _, report = register_files(cfg, tmp_path / "run")
+        assert err_r(np.array(report["transform"]), T, src) < 0.5
+        np.testing.assert_allclose(report["init"], guess)
+
+
+def test_parse_init_accepts_files_lists_and_identity(tmp_path):
+    np.testing.assert_array_equal(parse_init("identity"), np.eye(4))
+    assert parse_init(None) is None
+    np.testing.assert_array_equal(parse_init([1, 0, 0, 2, 0, 1, 0, 3, 0, 0, 1, 4]), pose([0, 0, 0], [2, 3, 4]))
+    with pytest.raises(RegisterError, match=r"init=.*expected 16 \(4x4\) or 12"):
+        parse_init("1 2 3")
+    with pytest.raises(RegisterError, match=r"init=.*rigid"):
+        parse_init(" ".join(["2"] + ["0"] * 4 + ["1"] + ["0"] * 4 + ["1"] + ["0"] * 4 + ["1"]))
+    with pytest.raises(RegisterError, match=r"init=.*not a file"):
+        parse_init("odometry.txt")
+    with pytest.raises(RegisterError, match=r"init=.*is a folder"):
+        parse_init(str(tmp_path))
+
+
+def test_a_folder_given_as_source_is_named(tmp_path):
+    write_point_cloud(tmp_path / "b.ply", surface(100, 4))
+    cfg = _compose(source=tmp_path, target=tmp_path / "b.ply")
+    with pytest.raises(RegisterError, match=f"source={tmp_path}: is a folder"):
+        register_files(cfg, tmp_path / "run")
+    assert not (tmp_path / "run").exists()
+
+
+def test_coincident_points_are_an_error_and_collinear_points_a_warning(tmp_path):
+    write_point_cloud(tmp_path / "b.ply", surface(300, 4))
+    np.savetxt(tmp_path / "same.xyz", np.ones((100, 3)))
+    cfg = _compose(source=tmp_path / "same.xyz", target=tmp_path / "b.ply")
+    with pytest.raises(RegisterError, match="source: all 100 points coincide"):
+        register_files(cfg, tmp_path / "run")
+    np.savetxt(tmp_path / "line.xyz", np.outer(np.arange(6.0), [1.0, 2.0, 3.0]))
+    cfg = _compose(source=tmp_path / "line.xyz", target=tmp_path / "b.ply")
+    _, report = register_files(cfg, tmp_path / "run")
+    assert any("collinear" in note for note in report["warnings"])
+
+
+def test_loss_without_the_adam_solver_is_an_error(tmp_path):
+    write_point_cloud(tmp_path / "a.ply", surface(100, 4))
+    cfg = _compose(source=tmp_path / "a.ply", target=tmp_path / "a.ply", loss="chamfer")
+    with pytest.raises(RegisterError, match="loss=chamfer needs solver=adam"):
+        register_files(cfg, tmp_path / "run")
+
+
+def test_the_command_fails_cleanly_and_leaves_no_folder(tmp_path):
+    write_point_cloud(tmp_path / "b.ply", surface(100, 4))
+    command = [sys.executable, "-m", "train.register", f"source={tmp_path}", f"target={tmp_path / 'b.ply'}"]
+    done = subprocess.run(command, cwd=tmp_path, capture_output=True, text=True, env=_repo_env(), timeout=300)
+    assert done.returncode == 2
+    assert f"source={tmp_path}: is a folder" in done.stderr and "Traceback" not in done.stderr
+    assert not (tmp_path / "outputs").exists()
+
+
+def _repo_env() -> dict[str, str]:
+    env = dict(os.environ)
+    env["PYTHONPATH"] = os.pathsep.join([str(REPO_ROOT), env.get("PYTHONPATH", "")])
+    return env

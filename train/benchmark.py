@@ -331,6 +331,37 @@ def folder_pairs(
     return dataset_pairs(dataset, pairs=pairs, seed=seed)
 
 
+@PAIR_SOURCES.register("partial_vs_whole")
+def partial_vs_whole_source(
+    *,
+    root: str,
+    pairs: int | None = 40,
+    seed: int = 0,
+    patterns: Sequence[str] | None = None,
+    **settings: Any,
+) -> list[PairSample]:
+    """A partial view against the whole shape, for any folder of meshes or point files
+    (:mod:`datasets.partial_vs_whole`: source = a hidden-point-removal view of 1024 points,
+    target = 2048 random points of the whole shape, both in ``[-1, 1]^3``, the paper's pose).
+
+    Args:
+        root: the folder (a relative path that does not exist is taken in the shared data).
+        pairs: number of pairs (``None``: 40); pair ``i`` uses shape ``i mod S``.
+        seed: seed of every draw.
+        patterns: glob patterns under ``root`` (e.g. ``["airplane/*.txt"]``).
+        **settings: fields of :class:`~datasets.partial_vs_whole.PartialVsWholeSettings`.
+    """
+    from datasets.partial_vs_whole import PartialVsWholeSettings, partial_vs_whole_pairs
+
+    return partial_vs_whole_pairs(
+        _data_path(root, root),
+        pairs=40 if pairs is None else pairs,
+        seed=seed,
+        patterns=None if patterns is None else list(patterns),
+        settings=PartialVsWholeSettings(**settings),
+    )
+
+
 def object_diameter(points: np.ndarray) -> float:
     """Twice the largest distance of a point of ``points (N, 3)`` from their centroid."""
     points = np.asarray(points, dtype=np.float64)
@@ -355,7 +386,11 @@ def _jsonable(value: Any) -> Any:
 
 
 def run_benchmark(
-    pairs: Sequence[PairSample], methods: Mapping[str, Method], *, progress: bool = True
+    pairs: Sequence[PairSample],
+    methods: Mapping[str, Method],
+    *,
+    progress: bool = True,
+    journal: str | Path | None = None,
 ) -> list[dict[str, Any]]:
     """Run every method on every pair and measure the paper's errors.
 
@@ -363,6 +398,9 @@ def run_benchmark(
         pairs: labelled pairs (``gt_transform`` maps source to target).
         methods: display name -> method (see :mod:`train.methods`).
         progress: show a tqdm bar.
+        journal: a JSON-lines file that receives every record as soon as it is measured;
+            records already in it (same pair and method) are reused, so an interrupted run
+            resumes where it stopped.
 
     Returns:
         One record per (pair, method), pairs outer: ``pair`` (position in ``pairs``),
@@ -377,10 +415,20 @@ def run_benchmark(
     if not pairs or not methods:
         raise ValueError(f"need at least one pair and one method, got {len(pairs)} and {len(methods)}")
     _labelled(pairs, "run_benchmark")
+    done: dict[tuple[int, str], dict[str, Any]] = {}
+    if journal is not None and Path(journal).is_file():
+        for line in Path(journal).read_text().splitlines():
+            if line.strip():
+                record = json.loads(line)
+                done[(record["pair"], record["method"])] = record
     records = []
     bar = tqdm(total=len(pairs) * len(methods), disable=not progress, desc="benchmark")
     for index, pair in enumerate(pairs):
         for name, method in methods.items():
+            if (index, name) in done:
+                records.append(done[(index, name)])
+                bar.update()
+                continue
             bar.set_postfix(method=name, pair=index)
             try:
                 result = method(pair.src_xyz, pair.tgt_xyz, pair.src_normals, pair.tgt_normals)
@@ -404,6 +452,9 @@ def run_benchmark(
                     "info": _jsonable(result.info),
                 }
             )
+            if journal is not None:
+                with Path(journal).open("a") as handle:
+                    handle.write(json.dumps(_jsonable(records[-1])) + "\n")
             bar.update()
     bar.close()
     return records
@@ -584,11 +635,14 @@ def benchmark(config: Mapping[str, Any]) -> dict[str, Path]:
     """Run a benchmark config (``configs/benchmark.yaml``) and write its results.
 
     Keys: ``benchmark`` (pair source config), ``methods`` (display names), ``method_zoo``,
-    ``pairs``, ``seed``, ``out``, ``relative_alpha``, ``alphas``, ``progress``.
+    ``pairs``, ``seed``, ``out``, ``relative_alpha``, ``alphas``, ``progress``. Records are
+    journaled to ``<out>/records.jsonl``: rerunning with the same ``out`` resumes.
     """
     pairs = build_pairs(config["benchmark"], pairs=config.get("pairs"), seed=int(config.get("seed", 0)))
     methods = build_methods(list(config["methods"]), config.get("method_zoo") or {})
-    records = run_benchmark(pairs, methods, progress=bool(config.get("progress", True)))
+    Path(config["out"]).mkdir(parents=True, exist_ok=True)
+    journal = Path(config["out"]) / "records.jsonl"
+    records = run_benchmark(pairs, methods, progress=bool(config.get("progress", True)), journal=journal)
     return write_results(
         records,
         config["out"],

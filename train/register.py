@@ -3,44 +3,107 @@
 Hydra overrides select everything else (``configs/register/register.yaml``; the app has its own
 config root so that ``loss=...`` names a loss, not the training configs' ``loss`` group)::
 
-    python -m train.register source=a.ply target=b.ply                      # linereg default
+    python -m train.register source=a.ply target=b.ply                      # robust default
     python -m train.register source=a.ply target=b.ply gt=gt.txt            # + errors vs GT
+    python -m train.register source=a.ply target=b.ply init=odom.txt        # initial guess
+    python -m train.register source=a.ply target=b.ply picture=true         # + before/after PNG
+    python -m train.register source=a.ply target=b.ply solver=adam          # Adam schedules
     python -m train.register source=a.ply target=b.ply solver=svd           # IRLS/SVD solver
-    python -m train.register source=a.ply target=b.ply loss=chamfer_welsch  # any loss
-    python -m train.register source=a.ply target=b.ply stages=paper         # paper's schedule
 
-It prints the 4x4 source-to-target transform and writes ``transform.txt``,
-``registered.ply`` (the whole source, transformed), ``result.json`` (loss curve, time and,
-with ``gt``, the paper's errors) and ``registration.png`` (before/after) in the run folder.
+It prints the 4x4 source-to-target transform with Open3D's ``fitness`` and ``inlier_rmse`` and a
+``converged`` flag, and writes ``transform.txt``, ``registered.ply`` (the whole source,
+transformed) and ``result.json`` (those values, time and, with ``gt``, the paper's errors) in
+the run folder; ``registration.png`` with ``picture=true``. A failed run leaves no folder.
 """
 
 from __future__ import annotations
 
 import json
 import logging
+import sys
+import warnings
 from pathlib import Path
 from typing import Any
 
 import hydra
 import numpy as np
-import torch
-from omegaconf import DictConfig, OmegaConf
-
-from linereg.io import read_point_cloud, read_transform, write_point_cloud, write_transform
-from linereg.metrics import registration_errors, rotation_error_deg
-from linereg.se3 import transform_normals
-
-from . import solvers  # noqa: F401  (registers adam_loss and svd_irls)
-from .methods import MethodResult, build_method
+from omegaconf import DictConfig, ListConfig, OmegaConf
 
 log = logging.getLogger(__name__)
 
 _MIN_POINTS = 3
+SOLVERS = ("robust", "adam", "svd")
+
+
+class RegisterError(ValueError):
+    """A bad argument of ``train.register``; the message names it."""
+
+
+def parse_init(value: Any) -> np.ndarray | None:
+    """The ``init=`` argument as a ``(4, 4)`` rigid transform (``None`` when not given).
+
+    Accepts a file (:func:`linereg.io.read_transform`), 16 (4x4) or 12 (3x4) numbers as a list
+    or a string separated by spaces or commas, or ``identity``.
+
+    Raises:
+        RegisterError: not a file, not 12/16 numbers, or not rigid; the message names ``init``.
+    """
+    from linereg.checks import check_transform
+    from linereg.io import read_transform
+
+    if value is None:
+        return None
+    if isinstance(value, str) and value.strip().lower() == "identity":
+        return np.eye(4)
+    if isinstance(value, str) and Path(value).expanduser().exists():
+        path = Path(value).expanduser()
+        if path.is_dir():
+            raise RegisterError(f"init={value}: is a folder, expected a file with a 4x4 transform")
+        try:
+            return read_transform(path)
+        except ValueError as error:
+            raise RegisterError(f"init={value}: {error}") from error
+    numbers = list(value) if isinstance(value, list | tuple | ListConfig) else str(value).replace(",", " ").split()
+    try:
+        values = np.array([float(number) for number in numbers], dtype=np.float64)
+    except (TypeError, ValueError) as error:
+        raise RegisterError(
+            f"init={value!r}: not a file and not a list of numbers (give a 4x4 transform file or 16 numbers)"
+        ) from error
+    if values.size == 12:
+        values = np.concatenate([values, [0.0, 0.0, 0.0, 1.0]])
+    if values.size != 16:
+        raise RegisterError(f"init={value!r}: expected 16 (4x4) or 12 (3x4) numbers, got {values.size}")
+    transform = values.reshape(4, 4)
+    try:
+        check_transform(transform, "init", rigid_atol=1e-4)
+    except ValueError as error:
+        raise RegisterError(f"init={value!r}: {error}") from error
+    return transform
+
+
+def read_cloud(path: Any, argument: str):
+    """:func:`linereg.io.read_point_cloud` with errors that name the argument."""
+    from linereg.io import read_point_cloud
+
+    if path is None or str(path) in ("", "???"):
+        raise RegisterError(f"{argument}= is required (a point-cloud file)")
+    file = Path(str(path)).expanduser()
+    if file.is_dir():
+        raise RegisterError(f"{argument}={path}: is a folder, expected a point-cloud file")
+    if not file.exists():
+        raise RegisterError(f"{argument}={path}: no such file")
+    try:
+        return read_point_cloud(file, min_points=_MIN_POINTS)
+    except ValueError as error:
+        raise RegisterError(f"{argument}={path}: {error}") from error
 
 
 def method_config(cfg: DictConfig) -> dict[str, Any]:
     """The registration method described by a ``register.yaml`` config."""
     common = {"num_points": cfg.num_points, "seed": cfg.seed, "progress": cfg.progress}
+    if cfg.solver not in SOLVERS:
+        raise RegisterError(f"solver={cfg.solver}: choose one of {', '.join(SOLVERS)}")
     if cfg.solver == "svd":
         return {
             "name": "svd_irls",
@@ -48,8 +111,18 @@ def method_config(cfg: DictConfig) -> dict[str, Any]:
             **OmegaConf.to_container(cfg.svd.options),
             **common,
         }
-    if cfg.solver != "adam":
-        raise ValueError(f"solver must be 'adam' or 'svd', got {cfg.solver!r}")
+    if cfg.solver == "robust":
+        if cfg.loss is not None:
+            raise RegisterError(f"loss={cfg.loss} needs solver=adam (the robust solver has its own losses)")
+        options = OmegaConf.to_container(cfg.robust) if cfg.robust else {}
+        return {
+            "name": "robust",
+            "options": options,
+            "device": cfg.device,
+            "threads": cfg.threads,
+            "fitness_threshold": cfg.fitness_threshold,
+            **common,
+        }
     if cfg.loss is not None:
         loss = {"name": cfg.loss} if isinstance(cfg.loss, str) else OmegaConf.to_container(cfg.loss)
         stages = [{"loss": loss, "iterations": cfg.iterations, "lr": cfg.lr}]
@@ -59,13 +132,36 @@ def method_config(cfg: DictConfig) -> dict[str, Any]:
     return {"name": "adam_loss", "stages": stages, **starts, **common}
 
 
-def register_files(cfg: DictConfig, out_dir: Path) -> tuple[MethodResult, dict[str, Any]]:
-    """Run the configured registration on ``cfg.source``/``cfg.target`` and write the outputs."""
-    src = read_point_cloud(cfg.source, min_points=_MIN_POINTS)
-    tgt = read_point_cloud(cfg.target, min_points=_MIN_POINTS)
-    gt = read_transform(cfg.gt) if cfg.gt else None
+def register_files(cfg: DictConfig, out_dir: Path) -> tuple[Any, dict[str, Any]]:
+    """Run the configured registration on ``cfg.source``/``cfg.target`` and write the outputs.
+
+    Everything is read and checked before the solver runs; ``out_dir`` is written only at the end.
+
+    Raises:
+        RegisterError: a bad argument or file, naming it.
+    """
+    import torch
+
+    from linereg.io import read_transform, write_point_cloud, write_transform
+    from linereg.metrics import registration_errors, rotation_error_deg
+    from linereg.se3 import transform_normals
+
+    from . import solvers  # noqa: F401  (registers robust, adam_loss and svd_irls)
+    from .methods import build_method
+
+    src = read_cloud(cfg.source, "source")
+    tgt = read_cloud(cfg.target, "target")
+    gt = None
+    if cfg.gt:
+        try:
+            gt = read_transform(cfg.gt)
+        except (FileNotFoundError, ValueError) as error:
+            raise RegisterError(f"gt={cfg.gt}: {error}") from error
+    init = parse_init(cfg.init)
+    if init is not None and cfg.solver != "robust":
+        raise RegisterError(f"init= is supported by solver=robust, not solver={cfg.solver}")
     config = method_config(cfg)
-    if gt is not None:
+    if gt is not None and cfg.solver != "robust":
         R_gt = torch.from_numpy(gt[:3, :3])
 
         def monitor(step: int, transform: np.ndarray, loss: float) -> dict[str, float]:
@@ -73,8 +169,26 @@ def register_files(cfg: DictConfig, out_dir: Path) -> tuple[MethodResult, dict[s
             return {"err_r": float(rotation_error_deg(torch.from_numpy(transform[:3, :3]), R_gt))}
 
         config["monitor"] = monitor
-    result = build_method(config)(src.xyz, tgt.xyz, src.normals, tgt.normals)
+    try:
+        method = build_method(config)
+    except (TypeError, ValueError) as error:
+        raise RegisterError(f"solver={cfg.solver}: {error}") from error
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        try:
+            if init is not None:
+                result = method(src.xyz, tgt.xyz, src.normals, tgt.normals, init=init)
+            else:
+                result = method(src.xyz, tgt.xyz, src.normals, tgt.normals)
+        except ValueError as error:
+            raise RegisterError(str(error)) from error
+    notes = [str(w.message) for w in caught if issubclass(w.category, UserWarning)]
+    for note in notes:
+        log.warning(note)
     transform = result.transform
+    quality = {
+        key: result.info[key] for key in ("fitness", "inlier_rmse", "converged", "confidence") if key in result.info
+    }
     report: dict[str, Any] = {
         "source": str(cfg.source),
         "target": str(cfg.target),
@@ -83,8 +197,12 @@ def register_files(cfg: DictConfig, out_dir: Path) -> tuple[MethodResult, dict[s
         "method": {k: v for k, v in config.items() if k != "monitor"},
         "seconds": result.seconds,
         "transform": transform.tolist(),
-        "loss_curve": result.info.get("loss_curve", []),
+        **quality,
+        "info": {k: v for k, v in result.info.items() if k not in quality},
+        "warnings": notes,
     }
+    if init is not None:
+        report["init"] = init.tolist()
     if gt is not None:
         errors = registration_errors(
             torch.from_numpy(transform)[None], torch.from_numpy(gt)[None], torch.from_numpy(src.xyz).double()[None]
@@ -98,7 +216,7 @@ def register_files(cfg: DictConfig, out_dir: Path) -> tuple[MethodResult, dict[s
         None if src.normals is None else transform_normals(T, torch.from_numpy(src.normals).double()).float().numpy()
     )
     write_point_cloud(out_dir / "registered.ply", moved, normals)
-    (out_dir / "result.json").write_text(json.dumps(report, indent=2))
+    (out_dir / "result.json").write_text(json.dumps(report, indent=2, default=float))
     if cfg.picture:
         from .figures import plot_registration
 
@@ -106,13 +224,33 @@ def register_files(cfg: DictConfig, out_dir: Path) -> tuple[MethodResult, dict[s
     return result, report
 
 
+def _remove_if_empty(folder: Path) -> None:
+    """Remove ``folder`` and its empty parents below the working folder when nothing was written."""
+    stop = Path.cwd().resolve()
+    for path in (folder.resolve(), *folder.resolve().parents):
+        if path == stop or stop not in path.parents or not path.is_dir() or any(path.iterdir()):
+            return
+        path.rmdir()
+
+
 @hydra.main(version_base="1.3", config_path="../configs/register", config_name="register")
 def main(cfg: DictConfig) -> None:
     out_dir = Path(hydra.core.hydra_config.HydraConfig.get().runtime.output_dir)
-    result, report = register_files(cfg, out_dir)
+    try:
+        result, report = register_files(cfg, out_dir)
+    except RegisterError as error:
+        _remove_if_empty(out_dir)
+        print(f"error: {error}", file=sys.stderr)
+        sys.exit(2)
+    except BaseException:
+        _remove_if_empty(out_dir)
+        raise
     np.set_printoptions(precision=6, suppress=True)
     print(f"source -> target transform ({result.seconds:.2f} s):")
     print(result.transform)
+    if "fitness" in report:
+        flag = "converged" if report.get("converged", True) else "NOT converged (doubtful pose)"
+        print(f"fitness {report['fitness']:.3f} | inlier_rmse {report['inlier_rmse']:.4g} | {flag}")
     if "metrics" in report:
         m = report["metrics"]
         print(

@@ -18,19 +18,25 @@ returned transform applies to the full cloud.
 
 from __future__ import annotations
 
+import contextlib
+import itertools
+import warnings
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 from typing import Any
 
 import numpy as np
 import torch
+from scipy.spatial import cKDTree
 from tqdm.auto import tqdm
 
-from linereg.pointcloud import farthest_point_sampling
+from linereg.checks import check_points, check_transform
+from linereg.pointcloud import farthest_point_sampling, knn
 from linereg.procrustes import weighted_procrustes
-from linereg.se3 import se3_exp, transform_points
+from linereg.se3 import rotation_angle, se3_exp, transform_points
 from losses import build_loss
 from losses.base import AlignmentLoss
+from losses.chamfer import welsch
 from losses.line_intersection import LineMetricOptions, line_correspondences
 
 from .methods import METHODS, MethodResult, run_centered
@@ -235,29 +241,61 @@ class AdamRegistration(_Solver):
         return poses[0], {"loss_curve": curve, "start": chosen}
 
     def _run_stage(self, stage, loss, src, tgt, poses, curve, bar, unscale) -> torch.Tensor:
-        """Adam with a cosine schedule from every pose in ``poses (K, 4, 4)``; the final poses.
-
-        ``curve`` receives the lowest loss over the starts at each iteration."""
-        count = len(poses)
-        src_batch, tgt_batch = src.expand(count, -1, -1), tgt.expand(count, -1, -1).contiguous()
-        xi = torch.zeros(count, 6, dtype=torch.float64, requires_grad=True)
-        optimiser = torch.optim.Adam([xi], lr=stage.lr)
-        schedule = torch.optim.lr_scheduler.CosineAnnealingLR(optimiser, T_max=max(stage.iterations, 1))
+        """:func:`adam_stage` with the progress bar and the monitor."""
         shown: dict[str, float] = {}
-        for _ in range(stage.iterations):
-            transforms = se3_exp(xi) @ poses
-            values, _ = loss.metric(transform_points(transforms, src_batch), tgt_batch)
-            optimiser.zero_grad()
-            values.sum().backward()
-            optimiser.step()
-            schedule.step()
-            best = int(values.argmin())
-            curve.append(values[best].item())
+
+        def report(transform: torch.Tensor) -> None:
+            nonlocal shown
             if self.monitor is not None:
-                shown = self.monitor(len(curve), unscale(transforms[best].detach().numpy()), curve[-1])
+                shown = self.monitor(len(curve), unscale(transform.numpy()), curve[-1])
             bar.set_postfix(loss=f"{curve[-1]:.4g}", **{k: f"{v:.3g}" for k, v in shown.items()})
             bar.update()
-        return (se3_exp(xi) @ poses).detach()
+
+        return adam_stage(stage, loss, src, tgt, poses, curve, report)
+
+
+def adam_stage(
+    stage: Stage,
+    loss: AlignmentLoss,
+    src: torch.Tensor,
+    tgt: torch.Tensor,
+    poses: torch.Tensor,
+    curve: list[float] | None = None,
+    report: Callable[[torch.Tensor], None] | None = None,
+) -> torch.Tensor:
+    """Adam on ``xi`` in se(3) (``T = exp(xi) @ pose``) with a cosine schedule, from every pose at once.
+
+    Args:
+        stage: iterations and peak learning rate (``stage.loss`` is not read: ``loss`` is built).
+        loss: alignment loss; its ``metric`` gives one value per pose.
+        src: ``(N, 3)`` source points.
+        tgt: ``(M, 3)`` target points.
+        poses: ``(K, 4, 4)`` starting transforms.
+        curve: receives the lowest loss over the poses at each iteration.
+        report: called after every iteration with the (detached) transform of the lowest loss.
+
+    Returns:
+        ``(K, 4, 4)`` final transforms.
+    """
+    count = len(poses)
+    src_batch, tgt_batch = src.expand(count, -1, -1), tgt.expand(count, -1, -1).contiguous()
+    xi = torch.zeros(count, 6, dtype=poses.dtype, device=poses.device, requires_grad=True)
+    optimiser = torch.optim.Adam([xi], lr=stage.lr)
+    schedule = torch.optim.lr_scheduler.CosineAnnealingLR(optimiser, T_max=max(stage.iterations, 1))
+    for _ in range(stage.iterations):
+        transforms = se3_exp(xi) @ poses
+        values, _ = loss.metric(transform_points(transforms, src_batch), tgt_batch)
+        optimiser.zero_grad()
+        values.sum().backward()
+        optimiser.step()
+        schedule.step()
+        if curve is not None or report is not None:
+            best = int(values.argmin())
+            if curve is not None:
+                curve.append(values[best].item())
+            if report is not None:
+                report(transforms[best].detach())
+    return (se3_exp(xi) @ poses).detach()
 
 
 class IRLSRegistration(_Solver):
@@ -308,6 +346,434 @@ class IRLSRegistration(_Solver):
             if self.monitor is not None:
                 shown = self.monitor(step + 1, unscale(pose.numpy()), curve[-1])
         return pose, {"loss_curve": curve, **shown}
+
+
+def _rotation_gap_deg(poses: torch.Tensor, reference: torch.Tensor) -> torch.Tensor:
+    """``(K,)`` angles in degrees between the rotations of ``poses (K, 4, 4)`` and ``reference (4, 4)``."""
+    relative = poses[:, :3, :3] @ reference[:3, :3].transpose(-1, -2)
+    return torch.rad2deg(rotation_angle(relative))
+
+
+class NearestTarget:
+    """Nearest target point of many query points, the target indexed once.
+
+    A ``scipy`` KD-tree on the CPU (all queries of a batch in one call), brute force
+    ``torch.cdist`` on other devices.
+
+    Args:
+        tgt: ``(M, 3)`` target points.
+    """
+
+    def __init__(self, tgt: torch.Tensor) -> None:
+        self.tgt = tgt
+        self._tree = cKDTree(tgt.detach().numpy()) if tgt.device.type == "cpu" else None
+
+    def __call__(self, points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """``(distances, indices)`` of shape ``points.shape[:-1]`` (no gradient)."""
+        with torch.no_grad():
+            if self._tree is not None:
+                flat = points.detach().reshape(-1, 3).numpy()
+                _, idx = self._tree.query(flat, workers=1)
+                idx = torch.from_numpy(idx.reshape(points.shape[:-1]))
+            else:
+                idx = torch.cdist(points.reshape(-1, 3)[None], self.tgt[None])[0].argmin(-1).reshape(points.shape[:-1])
+            return (points - self.tgt[idx]).norm(dim=-1), idx
+
+
+def fixed_scale_fit(poses: torch.Tensor, src: torch.Tensor, nearest: NearestTarget, nu: float) -> torch.Tensor:
+    """Welsch cost of every source point's nearest target distance with a FIXED scale ``nu``.
+
+    ``mean_i 1 - exp(-d_i^2 / 2 nu^2)`` with ``d_i`` the distance of ``T src_i`` to the target:
+    0 when every source point lies on the target, 1 when none is near it. Unlike the paper's
+    median-scaled metrics its value compares poses (lower is better).
+
+    Args:
+        poses: ``(K, 4, 4)`` source-to-target transforms.
+        src: ``(N, 3)`` source points.
+        nearest: the target's :class:`NearestTarget`.
+        nu: Welsch scale, in the units of the clouds.
+
+    Returns:
+        ``(K,)`` costs in ``[0, 1]``.
+    """
+    distances, _ = nearest(transform_points(poses, src.expand(len(poses), -1, -1)))
+    return (1.0 - torch.exp(-distances.square() / (2.0 * nu * nu))).mean(dim=1)
+
+
+def chamfer_welsch_batched(x: torch.Tensor, y: torch.Tensor, nu0: float) -> torch.Tensor:
+    """CD-W (:func:`losses.chamfer.chamfer_welsch_distance`) of small batched clouds.
+
+    The same value and gradient, with the nearest neighbours of all ``B`` pairs found by one
+    dense ``cdist`` (no gradient) instead of two KD-trees per pair: faster below about a
+    thousand points per cloud.
+
+    Args:
+        x: ``(B, N, 3)`` moved sources.
+        y: ``(B, M, 3)`` targets.
+        nu0: Welsch scale factor of the median nearest distance.
+
+    Returns:
+        ``(B,)`` values.
+    """
+    with torch.no_grad():  # the search in float32: only the indices are kept
+        distances = torch.cdist(x.float(), y.float())
+        x_to_y, y_to_x = distances.argmin(dim=2), distances.argmin(dim=1)
+    batch = torch.arange(len(x), device=x.device)[:, None]
+    d_xy = (x - y[batch, x_to_y]).norm(dim=-1)
+    d_yx = (y - x[batch, y_to_x]).norm(dim=-1)
+    nu = (nu0 * torch.cat([d_xy, d_yx], dim=1).detach().median(dim=1).values).clamp_min(1e-12)[:, None]
+    return welsch(d_xy, nu).mean(dim=1) + welsch(d_yx, nu).mean(dim=1)
+
+
+class _BatchedChamferWelsch:
+    """:func:`chamfer_welsch_batched` as an alignment metric for :func:`adam_stage`."""
+
+    def __init__(self, nu0: float) -> None:
+        self.nu0 = nu0
+
+    def metric(self, src: torch.Tensor, tgt: torch.Tensor) -> tuple[torch.Tensor, dict[str, Any]]:
+        return chamfer_welsch_batched(src, tgt, self.nu0), {}
+
+
+def alignment_quality(src: np.ndarray, tgt: np.ndarray, transform: np.ndarray, threshold: float) -> dict[str, float]:
+    """Open3D's registration quality of ``transform`` (4, 4) mapping ``src (N, 3)`` onto ``tgt (M, 3)``.
+
+    Returns:
+        ``fitness`` (fraction of source points with a target point within ``threshold``) and
+        ``inlier_rmse`` (RMS distance of those points; 0 when there are none).
+    """
+    src_t = torch.from_numpy(np.asarray(src, dtype=np.float64))
+    tgt_t = torch.from_numpy(np.asarray(tgt, dtype=np.float64))
+    moved = transform_points(torch.from_numpy(np.asarray(transform, dtype=np.float64)), src_t)
+    distances = knn(moved, tgt_t, 1).dists[:, 0]
+    inliers = distances <= threshold
+    rmse = float(distances[inliers].square().mean().sqrt()) if bool(inliers.any()) else 0.0
+    return {"fitness": float(inliers.double().mean()), "inlier_rmse": rmse}
+
+
+def point_spacing(points: torch.Tensor) -> float:
+    """Median distance of a point of ``points (N, 3)`` to its nearest other point."""
+    return float(knn(points, points, 1, exclude_self=True).dists.median())
+
+
+def welsch_irls(poses: torch.Tensor, src: torch.Tensor, nearest: NearestTarget, nus: Sequence[float]) -> torch.Tensor:
+    """Robust point-to-point ICP: one Welsch-weighted Procrustes step per scale in ``nus``.
+
+    Every step matches each moved source point to its nearest target point, weights the pair
+    by ``exp(-d^2 / 2 nu^2)`` and solves the weighted Procrustes problem in closed form.
+
+    Args:
+        poses: ``(K, 4, 4)`` starting transforms (refined independently, as a batch).
+        src: ``(N, 3)`` source points.
+        nearest: the target's :class:`NearestTarget`.
+        nus: Welsch scales, one per step (e.g. decreasing: coarse to fine).
+
+    Returns:
+        ``(K, 4, 4)`` refined transforms.
+    """
+    src_batch = src.expand(len(poses), -1, -1)
+    identity = torch.eye(4, dtype=poses.dtype, device=poses.device)
+    for nu in nus:
+        moved = transform_points(poses, src_batch)
+        distances, idx = nearest(moved)
+        weights = torch.exp(-distances.square() / (2.0 * nu * nu))
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # a degenerate step keeps its pose (valid=False)
+            update = weighted_procrustes(moved, nearest.tgt[idx], weights)
+        poses = torch.where(update.valid[:, None, None], update.transform, identity) @ poses
+    return poses
+
+
+def cube_rotations() -> torch.Tensor:
+    """The 24 rotations of the cube (signed axis permutations with determinant +1), the
+    identity first, as ``(24, 4, 4)`` float64 transforms."""
+    rotations = [np.eye(3)]
+    for permutation in itertools.permutations(range(3)):
+        for signs in itertools.product((1.0, -1.0), repeat=3):
+            matrix = np.zeros((3, 3))
+            matrix[range(3), permutation] = signs
+            if np.linalg.det(matrix) > 0 and not np.allclose(matrix, np.eye(3)):
+                rotations.append(matrix)
+    transforms = torch.eye(4, dtype=torch.float64).repeat(len(rotations), 1, 1)
+    transforms[:, :3, :3] = torch.from_numpy(np.stack(rotations))
+    return transforms
+
+
+def degeneracy(points: np.ndarray, name: str) -> str | None:
+    """``None`` for a cloud spread in 2 or 3 directions; a warning for a collinear one.
+
+    Raises:
+        ValueError: all points coincide (no direction at all), naming the cloud.
+    """
+    centred = np.asarray(points, dtype=np.float64) - np.mean(points, axis=0)
+    singular = np.linalg.svd(centred, compute_uv=False)
+    scale = max(float(np.abs(points).max()), 1e-300)
+    if singular[0] <= 1e-9 * scale * np.sqrt(len(points)):
+        raise ValueError(f"{name}: all {len(points)} points coincide; no rotation can be determined")
+    if singular[1] <= 1e-6 * singular[0]:
+        return f"{name}: the {len(points)} points are collinear; the rotation about their line is arbitrary"
+    return None
+
+
+@contextlib.contextmanager
+def torch_threads(count: int | None):
+    """Run the block with ``count`` torch CPU threads (``None``: leave them), then restore."""
+    if count is None:
+        yield
+        return
+    previous = torch.get_num_threads()
+    torch.set_num_threads(count)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(previous)
+
+
+@dataclass(frozen=True)
+class RobustOptions:
+    """Settings of :class:`RobustRegistration` (lengths in the unit ball of the centred pair).
+
+    Attributes:
+        starts: initial rotations of the first round (:func:`start_poses`).
+        coarse_points: FPS size of the source in the coarse stage (the target gets twice).
+        coarse_iterations: Adam iterations of CD-W from every start, all starts at once.
+        coarse_lr: peak learning rate (cosine decay) of the coarse stage.
+        coarse_nu0: CD-W's ``nu0`` (a wide window: robust to partial overlap).
+        polish_steps: Welsch IRLS steps from every coarse result (:func:`welsch_irls`) with
+            the scales of :func:`polish_scales`.
+        polish_nu: first IRLS scale.
+        polish_end: last IRLS scale, times the target's median point spacing.
+        select_nu: scale of the selection cost :func:`fixed_scale_fit`.
+        doubt_ratio: the pose is doubtful when another candidate more than ``distinct_deg``
+            away scores within this factor of the best cost, or the best cost exceeds
+            ``max_cost``; a doubtful first round triggers a second one from the 24 cube
+            rotations with ``escalate_factor`` times the coarse iterations.
+        distinct_deg: rotation gap between two candidates that count as different basins.
+        max_cost: selection cost above which the fit itself is doubtful.
+        escalate_factor: coarse iterations multiplier of the second round.
+        refine_iterations: optional Adam iterations of the line metric (candidate
+            intersections, ``refine_lines`` lines, lr ``refine_lr``) after the selection; 0 skips.
+    """
+
+    starts: int = 4
+    coarse_points: int = 256
+    coarse_iterations: int = 100
+    coarse_lr: float = 0.03
+    coarse_nu0: float = 2.0
+    polish_steps: int = 20
+    polish_nu: float = 0.05
+    polish_end: float = 0.3
+    select_nu: float = 0.03
+    doubt_ratio: float = 1.25
+    distinct_deg: float = 10.0
+    max_cost: float = 0.5
+    escalate_factor: int = 2
+    refine_iterations: int = 0
+    refine_lines: int = 4000
+    refine_lr: float = 0.002
+
+    def __post_init__(self) -> None:
+        positive = (
+            "coarse_points",
+            "coarse_lr",
+            "coarse_nu0",
+            "polish_nu",
+            "polish_end",
+            "select_nu",
+            "distinct_deg",
+            "max_cost",
+        )
+        for name in positive:
+            if not getattr(self, name) > 0:
+                raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
+        for name in ("coarse_iterations", "polish_steps", "refine_iterations"):
+            if getattr(self, name) < 0:
+                raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
+        if self.doubt_ratio < 1:
+            raise ValueError(f"doubt_ratio must be >= 1, got {self.doubt_ratio}")
+        if self.escalate_factor < 1:
+            raise ValueError(f"escalate_factor must be >= 1, got {self.escalate_factor}")
+        start_poses(self.starts)
+
+
+DEFAULT_ROBUST = RobustOptions()
+"""The settings of the ``register`` default."""
+
+
+def polish_scales(options: RobustOptions, spacing: float) -> np.ndarray:
+    """Welsch scales of the IRLS polish: ``polish_steps`` values falling geometrically from
+    ``polish_nu`` to ``polish_end`` times the target's point ``spacing`` over the first half,
+    then held (the last steps settle at the fine scale)."""
+    if options.polish_steps == 0:
+        return np.zeros(0)
+    fine = min(options.polish_end * spacing, options.polish_nu)
+    falling = np.geomspace(options.polish_nu, fine, max((options.polish_steps + 1) // 2, 1))
+    return np.concatenate([falling, np.full(options.polish_steps - len(falling), fine)])[: options.polish_steps]
+
+
+class RobustRegistration(_Solver):
+    """The ``register`` default: multi-start CD-W, Welsch IRLS, fixed-scale selection.
+
+    1. Both clouds centred (:func:`~train.methods.run_centered`) and scaled into the unit ball.
+    2. Coarse: Adam on CD-W (``nu0`` 2) from every start at once, on FPS subsets.
+    3. Polish: Welsch IRLS from every coarse result on the full clouds (``num_points``).
+    4. Select the candidate with the lowest :func:`fixed_scale_fit`. When the choice is doubtful
+       (another basin scores nearly as well, or the fit is poor), run a second round from the
+       24 cube rotations with a longer coarse stage and select among all candidates.
+    5. Optionally refine with the line metric (``refine_iterations``).
+
+    The result's ``info`` holds ``fitness`` and ``inlier_rmse`` (Open3D's definitions, within
+    ``fitness_threshold`` in input units; default 3 times the target's median point spacing),
+    ``converged`` (the final choice is not doubtful), ``confidence`` (``1 - best cost /
+    cost of the best distinct basin``; 1 without a rival), ``rounds`` and ``starts`` used, the
+    selection ``cost``, and ``warnings`` (collinear clouds).
+
+    Args:
+        options: :class:`RobustOptions` or a mapping of its fields.
+        num_points: FPS size of each cloud for the polish, selection and refinement.
+        seed: seeds the refinement's lines.
+        threads: torch CPU threads (``None``: 1 up to 20000 points per cloud, else torch's default;
+            small problems lose time to thread hand-offs, more so on a busy machine).
+        device: torch device of the computation (``"cpu"``, ``"cuda"``, ...).
+        fitness_threshold: inlier distance of ``fitness`` / ``inlier_rmse`` in input units.
+        progress, monitor: accepted for interface parity with :class:`AdamRegistration` (the
+            solver runs well under a second; ``monitor`` is called once with the result).
+        center: register centred clouds.
+    """
+
+    def __init__(
+        self,
+        options: RobustOptions | Mapping[str, Any] | None = None,
+        num_points: int | None = 2048,
+        seed: int = 0,
+        threads: int | None = None,
+        device: str = "cpu",
+        fitness_threshold: float | None = None,
+        progress: bool = False,
+        monitor: Monitor | None = None,
+        center: bool = True,
+    ) -> None:
+        if options is None:
+            options = RobustOptions()
+        elif not isinstance(options, RobustOptions):
+            known = {f.name for f in fields(RobustOptions)}
+            unknown = set(options) - known
+            if unknown:
+                raise TypeError(f"unknown option(s) {sorted(unknown)}; known: {sorted(known)}")
+            options = RobustOptions(**options)
+        if threads is not None and threads < 1:
+            raise ValueError(f"threads must be >= 1 or None, got {threads}")
+        if fitness_threshold is not None and not fitness_threshold > 0:
+            raise ValueError(f"fitness_threshold must be > 0 or None, got {fitness_threshold}")
+        self.options = options
+        self.num_points = num_points
+        self.seed = seed
+        self.threads = threads
+        self.device = torch.device(device)
+        self.fitness_threshold = fitness_threshold
+        self.monitor = monitor
+        self.center = center
+        self._coarse_loss = _BatchedChamferWelsch(options.coarse_nu0)
+        self._refine_loss = (
+            build_loss(
+                {
+                    "name": "line_intersection",
+                    "intersection": "candidates",
+                    "num_lines": options.refine_lines,
+                    "seed": seed,
+                }
+            )
+            if options.refine_iterations
+            else None
+        )
+
+    def __call__(self, src, tgt, src_normals=None, tgt_normals=None, *, init: np.ndarray | None = None) -> MethodResult:
+        """Register ``src (N, 3)`` onto ``tgt (M, 3)``; ``init (4, 4)`` is an initial guess applied
+        to the source first (the multi-start then explores around it)."""
+        check_points(src, "source", batched=False)
+        check_points(tgt, "target", batched=False)
+        found = [degeneracy(src, "source"), degeneracy(tgt, "target")]
+        notes = [note for note in found if note is not None]
+        for note in notes:
+            warnings.warn(note, stacklevel=2)
+        src = np.asarray(src, dtype=np.float64)
+        if init is not None:
+            init = np.asarray(init, dtype=np.float64)
+            check_transform(torch.from_numpy(init), "init")
+            src = src @ init[:3, :3].T + init[:3, 3]
+        threads = self.threads
+        if threads is None and self.device.type == "cpu":
+            threads = 1 if max(len(src), len(tgt)) <= 20000 else None
+        with torch_threads(threads):
+            result = run_centered(self._solve, src, tgt, center=self.center)
+        transform = result.transform if init is None else result.transform @ init
+        tgt_fit = _subsample(np.asarray(tgt, dtype=np.float64), self.num_points)
+        threshold = self.fitness_threshold
+        if threshold is None:
+            threshold = 3.0 * point_spacing(torch.from_numpy(tgt_fit))
+        quality = alignment_quality(_subsample(src, self.num_points), tgt_fit, result.transform, threshold)
+        info = {**result.info, **quality, "fitness_threshold": threshold, "warnings": notes}
+        if self.monitor is not None:
+            info.update(self.monitor(1, transform, info["cost"]))
+        return MethodResult(transform=transform, seconds=result.seconds, info=info)
+
+    def _round(self, src, nearest, src_coarse, tgt_coarse, starts, iterations, nus):
+        """Coarse CD-W from every start, then IRLS polish: ``(K, 4, 4)`` candidates, costs ``(K,)``."""
+        options = self.options
+        stage = Stage(loss={}, iterations=iterations, lr=options.coarse_lr)
+        poses = adam_stage(stage, self._coarse_loss, src_coarse, tgt_coarse, starts.to(src))
+        poses = welsch_irls(poses, src, nearest, nus)
+        return poses, fixed_scale_fit(poses, src, nearest, options.select_nu)
+
+    def _doubt(self, poses: torch.Tensor, costs: torch.Tensor) -> tuple[bool, float]:
+        """``(doubtful, confidence)`` of the lowest-cost candidate (see :class:`RobustOptions`)."""
+        best = int(costs.argmin())
+        rivals = _rotation_gap_deg(poses, poses[best]) > self.options.distinct_deg
+        if not bool(rivals.any()):
+            return bool(costs[best] > self.options.max_cost), 1.0
+        rival = float(costs[rivals].min())
+        doubtful = rival < self.options.doubt_ratio * float(costs[best]) or float(costs[best]) > self.options.max_cost
+        return doubtful, 1.0 - float(costs[best]) / max(rival, 1e-12)
+
+    def _solve(self, src, tgt, src_normals, tgt_normals) -> MethodResult:
+        options = self.options
+        src_t, tgt_t, radius = _normalise(_subsample(src, self.num_points), _subsample(tgt, self.num_points))
+        src_t, tgt_t = src_t.to(self.device), tgt_t.to(self.device)
+        src_coarse = _subsample(src_t, options.coarse_points)
+        tgt_coarse = _subsample(tgt_t, 2 * options.coarse_points)
+        nearest = NearestTarget(tgt_t)
+        nus = polish_scales(options, point_spacing(tgt_t))
+        poses, costs = self._round(
+            src_t, nearest, src_coarse, tgt_coarse, start_poses(options.starts), options.coarse_iterations, nus
+        )
+        doubtful, confidence = self._doubt(poses, costs)
+        rounds = 1
+        if doubtful:
+            iterations = options.escalate_factor * options.coarse_iterations
+            more, more_costs = self._round(src_t, nearest, src_coarse, tgt_coarse, cube_rotations(), iterations, nus)
+            poses, costs = torch.cat([poses, more]), torch.cat([costs, more_costs])
+            doubtful, confidence = self._doubt(poses, costs)
+            rounds = 2
+        best = int(costs.argmin())
+        pose = poses[best]
+        curve: list[float] = []
+        if options.refine_iterations:
+            stage = Stage(loss={}, iterations=options.refine_iterations, lr=options.refine_lr)
+            pose = adam_stage(stage, self._refine_loss, src_t, tgt_t, pose[None], curve)[0]
+        info = {
+            "converged": not doubtful,
+            "confidence": confidence,
+            "cost": float(costs[best]),
+            "rounds": rounds,
+            "starts": len(poses),
+            "loss_curve": curve,
+        }
+        return MethodResult(transform=_unscale(pose.double().cpu().numpy(), radius), info=info)
+
+
+@METHODS.register("robust")
+def _build_robust(**kwargs: Any) -> RobustRegistration:
+    return RobustRegistration(**kwargs)
 
 
 @METHODS.register("adam_loss")

@@ -117,3 +117,45 @@ def check_same_batch(a: ArrayLike, b: ArrayLike, name_a: str, name_b: str) -> No
     """Raise ``ValueError`` unless two batched tensors share their leading batch size."""
     if a.shape[0] != b.shape[0]:
         raise ValueError(f"{name_a} and {name_b} must share the batch size, got {a.shape[0]} and {b.shape[0]}")
+
+
+def check_lengths(
+    lengths: ArrayLike | None, name: str, batch: int, max_length: int, *, min_length: int = 1
+) -> torch.Tensor | None:
+    """Check the padding lengths of a batch and return them as an int64 CPU tensor.
+
+    Args:
+        lengths: ``None`` (no padding) or an integer tensor/array of shape ``(batch,)``.
+        name: argument name used in error messages.
+        batch: batch size ``B`` of the padded tensor.
+        max_length: padded size ``N`` of the tensor (no length may exceed it).
+        min_length: smallest valid length (e.g. ``k + 1`` for a metric that needs neighbours).
+
+    Returns:
+        ``None`` when ``lengths`` is ``None``, else the lengths as an int64 CPU tensor ``(B,)``.
+
+    Raises:
+        TypeError: not a tensor/array, or not an integer dtype (a float length is never truncated).
+        ValueError: wrong shape, or a length outside ``[min_length, max_length]``.
+    """
+    if lengths is None:
+        return None
+    if not isinstance(lengths, torch.Tensor | np.ndarray):
+        raise TypeError(f"{name} must be a torch.Tensor or numpy array of integers, got {type(lengths).__name__}")
+    is_integer = (
+        not lengths.is_floating_point() and not lengths.is_complex() and lengths.dtype != torch.bool
+        if isinstance(lengths, torch.Tensor)
+        else np.issubdtype(lengths.dtype, np.integer)
+    )
+    if not is_integer:
+        raise TypeError(f"{name} must have an integer dtype, got {lengths.dtype}")
+    if tuple(lengths.shape) != (batch,):
+        raise ValueError(f"{name} must have shape ({batch},) (one length per sample), got {tuple(lengths.shape)}")
+    values = torch.as_tensor(lengths).detach().to("cpu", torch.int64)
+    for sample, length in enumerate(values.tolist()):
+        if not min_length <= length <= max_length:
+            raise ValueError(
+                f"{name}[{sample}] = {length} is outside [{min_length}, {max_length}] "
+                f"(at least {min_length} valid point(s), at most the padded size {max_length})"
+            )
+    return values

@@ -15,9 +15,14 @@ For ``L`` random lines ``l`` (see :mod:`losses.lines`):
    recomputed every call) and ``w_l = exp(-| |S_l| - |T_l| | / 2)``. The metric is the mean of
    ``F_l`` over the lines that meet both clouds.
 
-Only point-line pairs that can interact are ever examined: a compiled grid walk
-(:mod:`losses.line_kernels`) returns indices and convex weights, and torch gathers the points,
-so memory is linear in ``N + L`` and the backward pass is a sparse scatter.
+Steps 1 and 2 only choose indices and detached weights; torch gathers the points, so memory
+is linear in ``N + L`` and the backward pass is a sparse scatter. Two backends choose them
+(``backend`` option): ``numba`` (:mod:`losses.line_kernels`, a compiled grid walk that only
+examines point-line pairs that can interact, on the CPU, threads across samples and lines) and
+``torch`` (:mod:`losses.line_torch`, an all-pairs test in chunks on the tensors' device, batched,
+no per-sample host round trip). ``auto`` (default) takes ``torch`` for tensors on an accelerator
+and ``numba`` on the CPU. For the same lines both give the same value and gradient up to float
+rounding. Half-precision inputs are evaluated in float32.
 
 Options reproduce every ablation of the paper (Table 2) and the authors' released code:
 
@@ -36,6 +41,7 @@ option            paper (default)                             alternatives
 ``line_weight``   True                                        False
 ``nu``            None (``nu0`` x median, detached)           a fixed absolute scale
 ``detach_weights`` True (Eq. 7 weights are constants)         False: differentiate them too
+``backend``       ``auto``                                    ``numba``, ``torch``
 ================  ==========================================  ================================
 
 ``variant="linereg"`` is the paper's metric with one change, ``intersection="pierce"``: the
@@ -67,18 +73,21 @@ does (reference-notes §1.5), each still overridable:
 from __future__ import annotations
 
 import math
+import numbers
 from dataclasses import dataclass, field
 from typing import Any
 
+import numba
 import numpy as np
 import torch
 
-from linereg.checks import check_points, check_same_batch
+from linereg.checks import check_lengths, check_points, check_same_batch
 from linereg.pointcloud import knn
 
-from . import line_kernels
+from . import line_kernels, line_torch
 from .base import LOSSES, AlignmentLoss
-from .lines import SAMPLERS, sample_lines
+from .line_torch import Hits
+from .lines import SAMPLERS, sample_line_batch
 
 INTERSECTIONS = {
     "candidates": line_kernels.MODE_CANDIDATES,
@@ -88,6 +97,16 @@ INTERSECTIONS = {
 }
 REDUCTIONS = ("lines", "groups")
 WELSCH_INPUTS = ("distance", "squared")
+BACKENDS = ("auto", "numba", "torch")
+STAT_KEYS = (
+    "lines",
+    "lines_hit_both",
+    "lines_hit_src",
+    "lines_hit_tgt",
+    "intersections_src",
+    "intersections_tgt",
+    "nu",
+)
 
 PAPER_DEFAULTS: dict[str, Any] = {
     "num_lines": 15000,
@@ -105,6 +124,7 @@ PAPER_DEFAULTS: dict[str, Any] = {
     "cell_factor": 4.0,
     "nu": None,
     "detach_weights": True,
+    "backend": "auto",
 }
 AUTHORS_OVERRIDES: dict[str, Any] = {
     "sampling": "authors",
@@ -138,6 +158,7 @@ class LineMetricOptions:
     cell_factor: float = PAPER_DEFAULTS["cell_factor"]
     nu: float | None = PAPER_DEFAULTS["nu"]
     detach_weights: bool = PAPER_DEFAULTS["detach_weights"]
+    backend: str = PAPER_DEFAULTS["backend"]
 
     def __post_init__(self) -> None:
         choices = {
@@ -145,59 +166,45 @@ class LineMetricOptions:
             "intersection": tuple(INTERSECTIONS),
             "reduction": REDUCTIONS,
             "welsch_input": WELSCH_INPUTS,
+            "backend": BACKENDS,
         }
         for name, allowed in choices.items():
             if getattr(self, name) not in allowed:
                 raise ValueError(f"{name} must be one of {', '.join(allowed)}, got {getattr(self, name)!r}")
+        for name in ("num_lines", "k"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, numbers.Integral) or value < 1:
+                raise ValueError(f"{name} must be an integer >= 1, got {value!r}")
         positive = {
-            "num_lines": self.num_lines,
-            "k": self.k,
             "delta_factor": self.delta_factor,
             "nu0": self.nu0,
             "radius_factor": self.radius_factor,
             "cell_factor": self.cell_factor,
         }
         for name, value in positive.items():
-            if not value > 0:
-                raise ValueError(f"{name} must be > 0, got {value}")
+            if not (isinstance(value, numbers.Real) and math.isfinite(value) and value > 0):
+                raise ValueError(f"{name} must be a finite number > 0, got {value!r}")
         if self.max_hits is not None and self.max_hits < 1:
             raise ValueError(f"max_hits must be >= 1 or None, got {self.max_hits}")
         if self.intersection == "pierce" and self.k != 2:
             raise ValueError(f"intersection 'pierce' intersects triangles and needs k=2, got k={self.k}")
-        if self.nu is not None and not self.nu > 0:
-            raise ValueError(f"nu must be > 0 or None, got {self.nu}")
-        if self.distance_eps < 0:
-            raise ValueError(f"distance_eps must be >= 0, got {self.distance_eps}")
+        if self.nu is not None and not (math.isfinite(self.nu) and self.nu > 0):
+            raise ValueError(f"nu must be a finite number > 0 or None, got {self.nu}")
+        if not (math.isfinite(self.distance_eps) and self.distance_eps >= 0):
+            raise ValueError(f"distance_eps must be a finite number >= 0, got {self.distance_eps}")
 
     @classmethod
     def for_variant(cls, variant: str = "paper", **overrides: Any) -> LineMetricOptions:
-        """Options of ``variant`` (``paper`` or ``authors``) with explicit ``overrides`` on top."""
+        """Options of ``variant`` (``paper``, ``authors`` or ``linereg``) with ``overrides`` on top."""
         if variant not in VARIANTS:
             raise ValueError(f"variant must be one of {', '.join(VARIANTS)}, got {variant!r}")
         return cls(**{**VARIANTS[variant], **overrides})
 
-
-@dataclass
-class Intersections:
-    """Intersections of ``L`` lines with one cloud.
-
-    Attributes:
-        offsets: ``(L+1,)`` int64 numpy; line ``l`` owns rows ``offsets[l]:offsets[l+1]``.
-        points: tensor of shape ``(H, 3)`` giving the intersection points (differentiable
-            w.r.t. the cloud's points).
-        members: ``(H, k+1)`` int64 numpy indices of the points combined into each one.
-        weights: ``(H, k+1)`` float64 numpy convex weights as computed by the kernel.
-    """
-
-    offsets: np.ndarray
-    points: torch.Tensor
-    members: np.ndarray
-    weights: np.ndarray
-
-    @property
-    def counts(self) -> np.ndarray:
-        """``(L,)`` number of intersections per line."""
-        return np.diff(self.offsets)
+    def resolved_backend(self, device: torch.device) -> str:
+        """``numba`` or ``torch``: ``auto`` takes ``torch`` for tensors that are not on the CPU."""
+        if self.backend != "auto":
+            return self.backend
+        return "numba" if device.type == "cpu" else "torch"
 
 
 @dataclass
@@ -208,166 +215,413 @@ class LineMetricResult:
     stats: dict[str, float] = field(default_factory=dict)
 
 
-def intersect_lines(
-    points: torch.Tensor, origins: np.ndarray, dirs: np.ndarray, options: LineMetricOptions
-) -> Intersections:
-    """Intersections of lines with one cloud (step 1 of the module docstring).
+@dataclass
+class LineBatch:
+    """The lines of a batch: ``origins``, ``dirs`` ``(B, L, 3)`` float64 (unit directions) on the
+    clouds' device; sample ``b`` uses its first ``counts[b]`` lines (``(B,)`` int64 numpy)."""
 
-    Args:
-        points: tensor of shape ``(N, 3)``, ``N > k``.
-        origins: ``(L, 3)`` float64 line points.
-        dirs: ``(L, 3)`` float64 unit directions.
-        options: metric options (``intersection``, ``k``, ``delta_factor``, ``distance_eps``).
-    """
+    origins: torch.Tensor
+    dirs: torch.Tensor
+    counts: np.ndarray
+
+    def valid(self) -> torch.Tensor:
+        """``(B, L)`` bool, False for padding lines."""
+        n_lines = self.origins.shape[1]
+        counts = torch.from_numpy(self.counts).to(self.origins.device)
+        return torch.arange(n_lines, device=self.origins.device)[None] < counts[:, None]
+
+
+def _explicit_lines(lines: Any, batch: int, device: torch.device) -> LineBatch:
+    """Validate ``lines=[(origins (L_b, 3), dirs (L_b, 3)), ...]`` and pad them into a batch;
+    directions are normalised (a line does not depend on their length)."""
+    if not isinstance(lines, list | tuple) or len(lines) != batch:
+        got = f"{len(lines)} entries" if isinstance(lines, list | tuple) else type(lines).__name__
+        raise ValueError(f"lines must be a list of {batch} (origins, dirs) pairs, one per sample, got {got}")
+    origins, dirs = [], []
+    for b, entry in enumerate(lines):
+        if not isinstance(entry, list | tuple) or len(entry) != 2:
+            raise ValueError(f"lines[{b}] must be a pair (origins, dirs)")
+        o, d = (torch.as_tensor(x).detach().to("cpu", torch.float64) for x in entry)
+        if o.ndim != 2 or o.shape[1] != 3 or o.shape != d.shape or len(o) == 0:
+            raise ValueError(
+                f"lines[{b}] must hold origins and dirs of one shape (L, 3) with L >= 1, "
+                f"got {tuple(o.shape)} and {tuple(d.shape)}"
+            )
+        if not (torch.isfinite(o).all() and torch.isfinite(d).all()):
+            raise ValueError(f"lines[{b}] contains NaN or Inf")
+        norm = d.norm(dim=1, keepdim=True)
+        if not (norm > 0).all():
+            raise ValueError(f"lines[{b}] has a zero direction (row {int((norm[:, 0] <= 0).nonzero()[0])})")
+        origins.append(o)
+        dirs.append(d / norm)
+    counts = np.array([len(o) for o in origins], dtype=np.int64)
+    width = int(counts.max())
+    padded_o = torch.stack([torch.cat([o, o[:1].expand(width - len(o), 3)]) for o in origins])
+    padded_d = torch.stack([torch.cat([d, d[:1].expand(width - len(d), 3)]) for d in dirs])
+    return LineBatch(padded_o.to(device), padded_d.to(device), counts)
+
+
+def _cylinder_radius(
+    points: torch.Tensor, valid: torch.Tensor, neighbors: torch.Tensor, distances: torch.Tensor, options
+) -> torch.Tensor:
+    """``(B, N)`` float64 radius ``delta`` of every point: ``delta_factor * d_nei`` per cloud
+    (``d_nei`` the mean distance to the k nearest neighbours over the valid points), or for
+    ``triplet`` the locally adaptive ``delta_factor * mean pairwise spacing`` of each point and
+    its neighbours."""
     k = options.k
-    if points.shape[0] <= k:
-        raise ValueError(f"the line-intersection metric needs more than k={k} points per cloud, got {points.shape[0]}")
-    detached = points.detach()
-    neighbors = knn(detached, detached, k, exclude_self=True)
-    nbr_idx = neighbors.idx.cpu().numpy().astype(np.int64)
-    nbr_dist = neighbors.dists.double().cpu().numpy()
-    coords = detached.double().cpu().numpy()
     if options.intersection == "triplet":
-        spacing = nbr_dist.sum(axis=1)
+        rows = torch.arange(points.shape[0], device=points.device)[:, None, None]
+        near = points[rows, neighbors]
+        spacing = distances.sum(dim=2)
         for a in range(k):
             for b in range(a + 1, k):
-                spacing += np.linalg.norm(coords[nbr_idx[:, a]] - coords[nbr_idx[:, b]], axis=1)
-        radius = options.delta_factor * spacing / (k * (k + 1) / 2)
-    else:
-        radius = np.full(points.shape[0], options.delta_factor * nbr_dist.mean())
+                spacing = spacing + (near[:, :, a] - near[:, :, b]).norm(dim=-1)
+        return options.delta_factor * spacing / (k * (k + 1) / 2)
+    mean = (distances.mean(dim=2) * valid).sum(dim=1) / valid.sum(dim=1)
+    return (options.delta_factor * mean)[:, None].expand(valid.shape)
+
+
+def _neighbors(
+    cloud: torch.Tensor, lengths: torch.Tensor, k: int, backend: str
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """``valid (B, N)``, ``neighbors (B, N, k)`` (sample-local) and their ``distances (B, N, k)``:
+    a KD-tree per sample for ``numba``, a masked brute-force search for ``torch``."""
+    batch, n = cloud.shape[:2]
+    valid = torch.arange(n, device=cloud.device)[None] < lengths.to(cloud.device)[:, None]
+    if backend == "torch":
+        idx, dist = line_torch.masked_knn(cloud, valid, k)
+        return valid, idx, dist
+    idx = torch.zeros(batch, n, k, dtype=torch.int64)
+    dist = torch.zeros(batch, n, k, dtype=torch.float64)
+    if bool((lengths == n).all()):
+        found = knn(cloud, cloud, k, exclude_self=True)
+        return valid, found.idx, found.dists
+    for b, length in enumerate(lengths.tolist()):
+        found = knn(cloud[b, :length], cloud[b, :length], k, exclude_self=True)
+        idx[b, :length], dist[b, :length] = found.idx, found.dists
+    return valid, idx, dist
+
+
+def _numba_hits(
+    clouds: list[torch.Tensor], valids: list[torch.Tensor], radii, neighbors, lines: LineBatch, options
+) -> list[Hits]:
+    """Intersections of the lines with every cloud of both sides, one kernel call for all.
+
+    Args:
+        clouds: per side, ``(B, N_side, 3)`` float64 CPU points (detached).
+        valids, radii, neighbors: per side, ``(B, N_side)``, ``(B, N_side)``, ``(B, N_side, k)``.
+    """
+    batch, n_lines = lines.origins.shape[:2]
     mode = INTERSECTIONS[options.intersection]
-    kernel_neighbors = (
-        np.zeros((points.shape[0], 0), dtype=np.int64) if mode == line_kernels.MODE_CANDIDATES else nbr_idx
-    )
-    cell = line_kernels.grid_cell_size(coords, radius, options.cell_factor)
+    origins = lines.origins.cpu().numpy()
+    dirs = lines.dirs.cpu().numpy()
+    line_o, line_d, line_ids, points, radius, nbrs, cells = [], [], [], [], [], [], []
+    for cloud, valid, rad, nbr in zip(clouds, valids, radii, neighbors, strict=True):
+        lengths = valid.sum(dim=1).tolist()
+        for b in range(batch):
+            coords = cloud[b, : lengths[b]].numpy()
+            r = rad[b, : lengths[b]].numpy()
+            count = int(lines.counts[b])
+            line_o.append(origins[b, :count])
+            line_d.append(dirs[b, :count])
+            line_ids.append(b * n_lines + np.arange(count))
+            points.append(coords)
+            radius.append(r)
+            local = nbr[b, : lengths[b]].numpy()
+            nbrs.append(local if mode != line_kernels.MODE_CANDIDATES else local[:, :0])
+            cells.append(line_kernels.grid_cell_size(coords, r, options.cell_factor))
+    line_offsets = np.concatenate([[0], np.cumsum([len(o) for o in line_o])])
+    point_offsets = np.concatenate([[0], np.cumsum([len(p) for p in points])])
+    threads = numba.get_num_threads()
+    chunk = int(np.clip(line_offsets[-1] // (8 * threads), 64, 1024))
     offsets, anchors, weights = line_kernels.line_intersections(
-        np.ascontiguousarray(origins),
-        np.ascontiguousarray(dirs),
-        coords,
-        radius,
-        np.ascontiguousarray(kernel_neighbors),
+        np.concatenate(line_o),
+        np.concatenate(line_d),
+        line_offsets,
+        np.concatenate(points),
+        point_offsets,
+        np.concatenate(radius),
+        np.ascontiguousarray(np.concatenate(nbrs)),
         mode,
         options.distance_eps,
-        cell,
+        np.array(cells),
+        chunk,
     )
-    members = np.concatenate([anchors[:, None], kernel_neighbors[anchors]], axis=1)
-    gathered = points[torch.from_numpy(members).to(points.device)]
-    if options.detach_weights or mode in (line_kernels.MODE_CANDIDATES, line_kernels.MODE_PIERCE):
-        w = torch.from_numpy(weights).to(device=points.device, dtype=points.dtype)
+    per_line = np.diff(offsets)
+    hit_line = np.repeat(np.concatenate(line_ids), per_line)
+    cloud_of_line = np.repeat(np.arange(len(points)), np.diff(line_offsets))
+    hit_cloud = np.repeat(cloud_of_line, per_line)
+    result = []
+    for side, cloud in enumerate(clouds):
+        n = cloud.shape[1]
+        rows = slice(offsets[line_offsets[side * batch]], offsets[line_offsets[(side + 1) * batch]])
+        sample = hit_cloud[rows] - side * batch
+        anchor = anchors[rows]
+        members = anchor[:, None]
+        if mode != line_kernels.MODE_CANDIDATES:
+            members = np.concatenate([members, neighbors[side].numpy()[sample, anchor]], axis=1)
+        result.append(
+            Hits(
+                torch.from_numpy(hit_line[rows]),
+                torch.from_numpy(members + (sample * n)[:, None]),
+                torch.from_numpy(weights[rows]),
+            )
+        )
+    return result
+
+
+def _intersection_points(cloud: torch.Tensor, hits: Hits, lines: LineBatch, options: LineMetricOptions) -> torch.Tensor:
+    """``(H, 3)`` intersection points, differentiable w.r.t. ``cloud (B, N, 3)``."""
+    gathered = cloud.reshape(-1, 3)[hits.members]
+    if options.detach_weights or options.intersection in ("candidates", "pierce"):
+        weights = hits.weights.to(cloud.dtype)
     else:
-        line_of = torch.from_numpy(np.repeat(np.arange(len(origins)), np.diff(offsets))).to(points.device)
-        o = torch.from_numpy(origins).to(points)[line_of].unsqueeze(1)
-        u = torch.from_numpy(dirs).to(points)[line_of].unsqueeze(1)
+        o = lines.origins.reshape(-1, 3).to(cloud.dtype)[hits.line].unsqueeze(1)
+        u = lines.dirs.reshape(-1, 3).to(cloud.dtype)[hits.line].unsqueeze(1)
         rel = gathered - o
         dist = (
             ((rel.square().sum(-1) - (rel * u).sum(-1).square()).clamp_min(0.0) + options.distance_eps)
-            .clamp_min(1e-30)
+            .clamp_min(torch.finfo(cloud.dtype).tiny)
             .sqrt()
         )
-        w = dist / dist.sum(dim=1, keepdim=True)
-    inter = (gathered * w.unsqueeze(-1)).sum(dim=1)
-    return Intersections(offsets=offsets, points=inter, members=members, weights=weights)
+        weights = dist / dist.sum(dim=1, keepdim=True)
+    return (gathered * weights.unsqueeze(-1)).sum(dim=1)
 
 
 @dataclass
-class LineMatches:
-    """Closest-point matches along the lines that meet both clouds (step 2).
+class LinePairs:
+    """Everything the value needs: intersections and their matches along the lines.
 
     Attributes:
-        src_index: ``(P,)`` int64 rows of the source intersections.
-        tgt_index: ``(P,)`` int64 rows of the target intersections.
-        line: ``(P,)`` int64 line of each match.
-        is_row: ``(P,)`` bool, True for source->target matches (``sigma_l``), False for
-            target->source ones (``rho_l``).
-        line_weight: ``(P,)`` float64 ``w_l`` of each match's line (ones when disabled).
-        group: ``(P,)`` int64 id of the line's ``(|S_l|, |T_l|)`` pair.
-        lines_kept: number of lines that meet both clouds (within ``max_hits``).
+        src_points, tgt_points: ``(Hs, 3)``, ``(Ht, 3)`` intersection points (on the graph).
+        src_index, tgt_index: ``(P,)`` int64 matched rows; ``line (P,)`` global line id;
+            ``is_row (P,)`` True for source->target matches (``sigma_l``).
+        src_count, tgt_count: ``(B * L,)`` int64 intersections per line.
+        keep: ``(B * L,)`` bool, lines that meet both clouds (within ``max_hits``).
+        lines: the lines.
     """
 
-    src_index: np.ndarray
-    tgt_index: np.ndarray
-    line: np.ndarray
-    is_row: np.ndarray
-    line_weight: np.ndarray
-    group: np.ndarray
-    lines_kept: int
+    src_points: torch.Tensor
+    tgt_points: torch.Tensor
+    src_index: torch.Tensor
+    tgt_index: torch.Tensor
+    line: torch.Tensor
+    is_row: torch.Tensor
+    src_count: torch.Tensor
+    tgt_count: torch.Tensor
+    keep: torch.Tensor
+    lines: LineBatch
 
 
-def match_intersections(src: Intersections, tgt: Intersections, options: LineMetricOptions) -> LineMatches:
-    """Match the intersections of each line both ways (Eq. 3's ``sigma_l`` and ``rho_l``)."""
-    ns, nt = src.counts, tgt.counts
+def _line_pairs(src, tgt, src_lengths, tgt_lengths, options, generator, lines) -> LinePairs:
+    """Steps 1 and 2 for a batch (inputs already validated, float32 or wider)."""
+    device = src.device
+    backend = options.resolved_backend(device)
+    batch = src.shape[0]
+    if lines is not None:
+        line_batch = _explicit_lines(lines, batch, device)
+    else:
+        origins, dirs, counts = sample_line_batch(
+            src,
+            tgt,
+            src_lengths.to(device),
+            tgt_lengths.to(device),
+            options.num_lines,
+            generator,
+            sampling=options.sampling,
+            radius_factor=options.radius_factor,
+        )
+        line_batch = LineBatch(origins, dirs, counts)
+    n_lines = line_batch.origins.shape[1]
+    clouds, valids, radii, neighbors = [], [], [], []
+    for cloud, lengths in ((src, src_lengths), (tgt, tgt_lengths)):
+        coords = cloud.detach().double()
+        if backend == "numba":
+            coords = coords.cpu()
+        valid, nbr, dist = _neighbors(coords, lengths, options.k, backend)
+        clouds.append(coords)
+        valids.append(valid)
+        neighbors.append(nbr)
+        radii.append(_cylinder_radius(coords, valid, nbr, dist, options))
+    mode = INTERSECTIONS[options.intersection]
+    if backend == "numba":
+        hits = _numba_hits(clouds, valids, radii, neighbors, line_batch, options)
+        hits = [Hits(h.line.to(device), h.members.to(device), h.weights.to(device)) for h in hits]
+    else:
+        line_valid, eps2 = line_batch.valid(), options.distance_eps
+        hits = [
+            line_torch.torch_hits(c, v, r, n, line_batch.origins, line_batch.dirs, line_valid, mode, eps2)
+            for c, v, r, n in zip(clouds, valids, radii, neighbors, strict=True)
+        ]
+    src_hits, tgt_hits = hits
+    src_points = _intersection_points(src, src_hits, line_batch, options)
+    tgt_points = _intersection_points(tgt, tgt_hits, line_batch, options)
+    n_total = batch * n_lines
+    ns = torch.bincount(src_hits.line, minlength=n_total)
+    nt = torch.bincount(tgt_hits.line, minlength=n_total)
     keep = (ns >= 1) & (nt >= 1)
     if options.max_hits is not None:
         keep &= (ns <= options.max_hits) & (nt <= options.max_hits)
-    pair_offsets = np.concatenate([[0], np.cumsum(np.where(keep, ns + nt, 0))])
-    s_idx, t_idx, line_of = line_kernels.match_along_lines(
-        src.offsets,
-        tgt.offsets,
-        src.points.detach().double().cpu().numpy(),
-        tgt.points.detach().double().cpu().numpy(),
-        pair_offsets,
-    )
-    is_row = (np.arange(len(line_of)) - pair_offsets[line_of]) < ns[line_of]
-    line_w = np.exp(-np.abs(ns - nt) / 2.0)[line_of] if options.line_weight else np.ones(len(line_of))
-    group = ns[line_of] * (int(nt.max(initial=0)) + 1) + nt[line_of]
-    return LineMatches(s_idx, t_idx, line_of, is_row, line_w, group, int(keep.sum()))
-
-
-def welsch_two_c(dist_sq: torch.Tensor, options: LineMetricOptions) -> tuple[torch.Tensor, torch.Tensor]:
-    """The detached Welsch scale ``nu`` and the denominator ``2 nu^2`` (or ``2 c`` for squared
-    input) so that ``psi = 1 - exp(-d^2 / two_c)``."""
-    if options.nu is not None:
-        scale = dist_sq.new_tensor(options.nu)
-    elif options.welsch_input == "distance":
-        scale = options.nu0 * dist_sq.detach().sqrt().median()
+    if backend == "numba":
+        ns_np, nt_np, keep_np = ns.cpu().numpy(), nt.cpu().numpy(), keep.cpu().numpy()
+        pair_offsets = np.concatenate([[0], np.cumsum(np.where(keep_np, ns_np + nt_np, 0))])
+        s_idx, t_idx, line_of = line_kernels.match_along_lines(
+            np.concatenate([[0], np.cumsum(ns_np)]),
+            np.concatenate([[0], np.cumsum(nt_np)]),
+            src_points.detach().double().cpu().numpy(),
+            tgt_points.detach().double().cpu().numpy(),
+            pair_offsets,
+        )
+        is_row = (np.arange(len(line_of)) - pair_offsets[line_of]) < ns_np[line_of]
+        src_index, tgt_index, line, is_row_t = (torch.from_numpy(x).to(device) for x in (s_idx, t_idx, line_of, is_row))
     else:
-        scale = options.nu0 * dist_sq.detach().median()
-    two_c = 2.0 * (scale.square() if options.welsch_input == "distance" else scale)
-    return scale, two_c.clamp_min(torch.finfo(dist_sq.dtype).tiny)
+        src_index, tgt_index, line, is_row_t = line_torch.match_along_lines(
+            src_hits.line, tgt_hits.line, src_points.detach().double(), tgt_points.detach().double(), ns, nt, keep
+        )
+    return LinePairs(src_points, tgt_points, src_index, tgt_index, line, is_row_t, ns, nt, keep, line_batch)
 
 
-def _hit_stats(src: Intersections, tgt: Intersections, matches: LineMatches) -> dict[str, float]:
-    ns, nt = src.counts, tgt.counts
-    return {
-        "lines": float(len(ns)),
-        "lines_hit_both": float(matches.lines_kept),
-        "lines_hit_src": float((ns > 0).sum()),
-        "lines_hit_tgt": float((nt > 0).sum()),
-        "intersections_src": float(ns.sum()),
-        "intersections_tgt": float(nt.sum()),
-    }
+def _segment_lower_median(values: torch.Tensor, segment: torch.Tensor, n_segments: int) -> torch.Tensor:
+    """``(n_segments,)`` lower median of ``values`` within each segment (``torch.median``'s
+    convention), 0 for an empty segment."""
+    counts = torch.bincount(segment, minlength=n_segments)
+    if len(values) == 0:
+        return values.new_zeros(n_segments)
+    order = torch.argsort(values)
+    order = order[torch.argsort(segment[order], stable=True)]
+    starts = torch.cumsum(counts, 0) - counts
+    pick = (starts + (counts - 1).clamp_min(0) // 2).clamp_max(len(values) - 1)
+    return torch.where(counts > 0, values[order][pick], 0.0)
 
 
-def _pair_value(
-    src: Intersections, tgt: Intersections, options: LineMetricOptions, anchor: torch.Tensor
-) -> tuple[torch.Tensor, dict[str, float]]:
-    """Steps 2-3 for one sample: the metric value (0-dim tensor) and its statistics."""
-    matches = match_intersections(src, tgt, options)
-    stats = _hit_stats(src, tgt, matches)
-    if matches.lines_kept == 0:
-        # No line meets both clouds: a defined zero with a zero gradient, still on the graph.
-        return anchor.sum() * 0.0, {**stats, "nu": 0.0}
-    device = src.points.device
-    diff = (
-        src.points[torch.from_numpy(matches.src_index).to(device)]
-        - tgt.points[torch.from_numpy(matches.tgt_index).to(device)]
-    )
+def _welsch_terms(
+    pairs: LinePairs, options: LineMetricOptions
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Per match: the line weight ``w_l``, the squared distance and the Welsch denominator
+    ``2 nu^2`` (``2 c`` for squared input); and the per-sample scale ``nu (B,)`` (detached; 0 for
+    a sample without matches)."""
+    batch, n_lines = pairs.lines.origins.shape[:2]
+    diff = pairs.src_points[pairs.src_index] - pairs.tgt_points[pairs.tgt_index]
     dist_sq = diff.square().sum(dim=1)
-    scale, two_c = welsch_two_c(dist_sq, options)
-    weighted = torch.from_numpy(matches.line_weight).to(dist_sq) * (1.0 - torch.exp(-dist_sq / two_c))
-    stats["nu"] = float(scale)
-    if options.reduction == "lines":
-        return weighted.sum() / float(matches.lines_kept), stats
-    # "groups": the authors' per-(|S_l|, |T_l|) averaging, rows (source->target) and columns apart.
-    _, bucket = np.unique(matches.group * 2 + (~matches.is_row), return_inverse=True)
-    bucket_t = torch.from_numpy(bucket.reshape(-1)).to(device)
-    n_buckets = int(bucket.max()) + 1
-    sums = torch.zeros(n_buckets, dtype=weighted.dtype, device=device).index_add(0, bucket_t, weighted)
-    counts = torch.zeros(n_buckets, dtype=weighted.dtype, device=device).index_add(
-        0, bucket_t, torch.ones_like(weighted)
+    sample = pairs.line // n_lines
+    if options.nu is not None:
+        scale = dist_sq.new_full((batch,), options.nu)
+    elif options.welsch_input == "distance":
+        scale = options.nu0 * _segment_lower_median(dist_sq.detach().sqrt(), sample, batch)
+    else:
+        scale = options.nu0 * _segment_lower_median(dist_sq.detach(), sample, batch)
+    two_c = (2.0 * (scale.square() if options.welsch_input == "distance" else scale)).clamp_min(
+        torch.finfo(dist_sq.dtype).tiny
     )
-    n_groups = len(np.unique(matches.group))
-    return (sums / counts).sum() / n_groups, stats
+    if options.line_weight:
+        line_w = torch.exp(-(pairs.src_count - pairs.tgt_count).abs().to(dist_sq.dtype) / 2.0)[pairs.line]
+    else:
+        line_w = torch.ones_like(dist_sq)
+    return line_w, dist_sq, two_c[sample], scale
+
+
+def _values(pairs: LinePairs, options: LineMetricOptions, anchor: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Step 3: ``(B,)`` values and ``(B, 7)`` statistics (:data:`STAT_KEYS`)."""
+    batch, n_lines = pairs.lines.origins.shape[:2]
+    line_w, dist_sq, two_c, scale = _welsch_terms(pairs, options)
+    weighted = line_w * (1.0 - torch.exp(-dist_sq / two_c))
+    sample = pairs.line // n_lines
+    kept = pairs.keep.view(batch, n_lines).sum(dim=1)
+    # A sample without a kept line is a defined zero with a zero gradient, still on the graph.
+    zero = anchor.sum() * 0.0
+    if options.reduction == "lines":
+        sums = weighted.new_zeros(batch).index_add(0, sample, weighted)
+        value = zero + sums / kept.clamp_min(1).to(weighted.dtype)
+    else:
+        # The authors' per-(|S_l|, |T_l|) averaging, rows (source->target) and columns apart.
+        src_size, tgt_size = len(pairs.src_points) + 1, len(pairs.tgt_points) + 1
+        group = (sample * src_size + pairs.src_count[pairs.line]) * tgt_size + pairs.tgt_count[pairs.line]
+        buckets, bucket = torch.unique(group * 2 + (~pairs.is_row).long(), return_inverse=True)
+        sums = weighted.new_zeros(len(buckets)).index_add(0, bucket, weighted)
+        means = sums / torch.bincount(bucket, minlength=len(buckets)).to(weighted.dtype)
+        bucket_sample = buckets // 2 // (src_size * tgt_size)
+        group_sample = torch.unique(group) // (src_size * tgt_size)
+        n_groups = torch.bincount(group_sample, minlength=batch).clamp_min(1)
+        value = zero + weighted.new_zeros(batch).index_add(0, bucket_sample, means) / n_groups.to(weighted.dtype)
+    ns = pairs.src_count.view(batch, n_lines)
+    nt = pairs.tgt_count.view(batch, n_lines)
+    stats = torch.stack(
+        [
+            torch.from_numpy(pairs.lines.counts).to(ns.device),
+            kept,
+            (ns > 0).sum(dim=1),
+            (nt > 0).sum(dim=1),
+            ns.sum(dim=1),
+            nt.sum(dim=1),
+        ],
+        dim=1,
+    ).double()
+    return value, torch.cat([stats, scale.detach().double()[:, None]], dim=1)
+
+
+def _checked_inputs(src, tgt, src_lengths, tgt_lengths, options):
+    """Validate the batch; return both clouds in float32 or wider and the lengths (CPU int64)."""
+    check_points(src, "src", batched=True, min_points=options.k + 1)
+    check_points(tgt, "tgt", batched=True, min_points=options.k + 1)
+    check_same_batch(src, tgt, "src", "tgt")
+    if src.device != tgt.device:
+        raise ValueError(f"src and tgt must be on the same device, got {src.device} and {tgt.device}")
+    batch = src.shape[0]
+    need = options.k + 1
+    src_lengths = check_lengths(src_lengths, "src_lengths", batch, src.shape[1], min_length=need)
+    tgt_lengths = check_lengths(tgt_lengths, "tgt_lengths", batch, tgt.shape[1], min_length=need)
+    if src_lengths is None:
+        src_lengths = torch.full((batch,), src.shape[1], dtype=torch.int64)
+    if tgt_lengths is None:
+        tgt_lengths = torch.full((batch,), tgt.shape[1], dtype=torch.int64)
+    work = torch.promote_types(torch.promote_types(src.dtype, tgt.dtype), torch.float32)
+    return src.to(work), tgt.to(work), src_lengths, tgt_lengths
+
+
+def _fresh_generator() -> torch.Generator:
+    return torch.Generator().manual_seed(int(torch.randint(0, 2**62, ()).item()))
+
+
+def line_intersection_metric(
+    src: torch.Tensor,
+    tgt: torch.Tensor,
+    src_lengths: torch.Tensor | None = None,
+    tgt_lengths: torch.Tensor | None = None,
+    *,
+    options: LineMetricOptions | None = None,
+    generator: torch.Generator | None = None,
+    lines: list[tuple[np.ndarray, np.ndarray]] | None = None,
+) -> LineMetricResult:
+    """The line-intersection metric between batched clouds.
+
+    Args:
+        src: tensor of shape ``(B, N, 3)`` giving the (transformed) source points; gradients
+            flow to it.
+        tgt: tensor of shape ``(B, M, 3)`` giving the target points.
+        src_lengths: optional ``(B,)`` integer number of valid source points (padded batches),
+            each in ``[k + 1, N]``.
+        tgt_lengths: optional ``(B,)`` integer number of valid target points, in ``[k + 1, M]``.
+        options: metric options; the paper's defaults when ``None``.
+        generator: CPU ``torch.Generator`` for the lines (fresh randomness when ``None``).
+        lines: optional explicit lines per sample ``[(origins (L_b, 3), dirs (L_b, 3)), ...]``
+            (arrays or tensors; non-zero directions, normalised here), overriding the sampler.
+
+    Returns:
+        :class:`LineMetricResult` with ``value`` of shape ``(B,)`` in the dtype of ``src``
+        (zero, with zero gradient, for a sample where no line meets both clouds) and
+        batch-averaged hit statistics.
+
+    Raises:
+        TypeError: non-float clouds or non-integer lengths.
+        ValueError: wrong shapes, NaN/Inf coordinates, a cloud with ``k`` points or fewer, a
+            length outside its range, or malformed ``lines``.
+    """
+    options = options or LineMetricOptions()
+    work_src, work_tgt, src_lengths, tgt_lengths = _checked_inputs(src, tgt, src_lengths, tgt_lengths, options)
+    pairs = _line_pairs(work_src, work_tgt, src_lengths, tgt_lengths, options, generator or _fresh_generator(), lines)
+    value, stats = _values(pairs, options, work_src)
+    mean_stats = dict(zip(STAT_KEYS, stats.mean(dim=0).tolist(), strict=True))
+    return LineMetricResult(value=value.to(src.dtype), stats=mean_stats)
 
 
 @dataclass
@@ -403,85 +657,18 @@ def line_correspondences(
     options = options or LineMetricOptions()
     check_points(src, "src", batched=False, min_points=options.k + 1)
     check_points(tgt, "tgt", batched=False, min_points=options.k + 1)
-    generator = generator or torch.Generator().manual_seed(int(torch.randint(0, 2**62, ()).item()))
-    origins, dirs = sample_lines(
-        src, tgt, options.num_lines, generator, sampling=options.sampling, radius_factor=options.radius_factor
+    work_src, work_tgt, src_lengths, tgt_lengths = _checked_inputs(
+        src.detach()[None], tgt.detach()[None], None, None, options
     )
-    src_inter = intersect_lines(src.detach(), origins, dirs, options)
-    tgt_inter = intersect_lines(tgt.detach(), origins, dirs, options)
-    matches = match_intersections(src_inter, tgt_inter, options)
-    x = src_inter.points[torch.from_numpy(matches.src_index).to(src.device)]
-    y = tgt_inter.points[torch.from_numpy(matches.tgt_index).to(src.device)]
-    dist_sq = (x - y).square().sum(dim=1)
-    stats = _hit_stats(src_inter, tgt_inter, matches)
-    if matches.lines_kept == 0:
-        return Correspondences(x, y, dist_sq, {**stats, "nu": 0.0})
-    scale, two_c = welsch_two_c(dist_sq, options)
-    weights = torch.from_numpy(matches.line_weight).to(dist_sq) * torch.exp(-dist_sq / two_c)
-    return Correspondences(x, y, weights, {**stats, "nu": float(scale)})
-
-
-def line_intersection_metric(
-    src: torch.Tensor,
-    tgt: torch.Tensor,
-    src_lengths: torch.Tensor | None = None,
-    tgt_lengths: torch.Tensor | None = None,
-    *,
-    options: LineMetricOptions | None = None,
-    generator: torch.Generator | None = None,
-    lines: list[tuple[np.ndarray, np.ndarray]] | None = None,
-) -> LineMetricResult:
-    """The line-intersection metric between batched clouds.
-
-    Args:
-        src: tensor of shape ``(B, N, 3)`` giving the (transformed) source points; gradients
-            flow to it.
-        tgt: tensor of shape ``(B, M, 3)`` giving the target points.
-        src_lengths: optional ``(B,)`` number of valid source points (padded batches).
-        tgt_lengths: optional ``(B,)`` number of valid target points.
-        options: metric options; the paper's defaults when ``None``.
-        generator: CPU ``torch.Generator`` for the lines (fresh randomness when ``None``).
-        lines: optional explicit lines per sample ``[(origins (L, 3), dirs (L, 3)), ...]``
-            (float64, unit directions), overriding the sampler.
-
-    Returns:
-        :class:`LineMetricResult` with ``value`` of shape ``(B,)`` (zero, with zero gradient,
-        for a sample where no line meets both clouds) and batch-averaged hit statistics.
-
-    Raises:
-        ValueError: wrong shapes, NaN/Inf coordinates, or a cloud with ``k`` points or fewer.
-    """
-    options = options or LineMetricOptions()
-    check_points(src, "src", batched=True, min_points=options.k + 1)
-    check_points(tgt, "tgt", batched=True, min_points=options.k + 1)
-    check_same_batch(src, tgt, "src", "tgt")
-    if generator is None:
-        generator = torch.Generator().manual_seed(int(torch.randint(0, 2**62, ()).item()))
-    values, all_stats = [], []
-    for b in range(src.shape[0]):
-        src_b = src[b, : int(src_lengths[b])] if src_lengths is not None else src[b]
-        tgt_b = tgt[b, : int(tgt_lengths[b])] if tgt_lengths is not None else tgt[b]
-        if lines is not None:
-            origins, dirs = lines[b]
-        else:
-            origins, dirs = sample_lines(
-                src_b,
-                tgt_b,
-                options.num_lines,
-                generator,
-                sampling=options.sampling,
-                radius_factor=options.radius_factor,
-            )
-        value, stats = _pair_value(
-            intersect_lines(src_b, origins, dirs, options),
-            intersect_lines(tgt_b, origins, dirs, options),
-            options,
-            src_b,
-        )
-        values.append(value)
-        all_stats.append(stats)
-    mean_stats = {key: float(np.mean([s[key] for s in all_stats])) for key in all_stats[0]}
-    return LineMetricResult(value=torch.stack(values), stats=mean_stats)
+    pairs = _line_pairs(work_src, work_tgt, src_lengths, tgt_lengths, options, generator or _fresh_generator(), None)
+    _, stats = _values(pairs, options, work_src)
+    line_w, dist_sq, two_c, _ = _welsch_terms(pairs, options)
+    x = pairs.src_points[pairs.src_index]
+    y = pairs.tgt_points[pairs.tgt_index]
+    weights = line_w * torch.exp(-dist_sq / two_c)
+    return Correspondences(
+        x.to(src.dtype), y.to(src.dtype), weights.to(src.dtype), dict(zip(STAT_KEYS, stats[0].tolist(), strict=True))
+    )
 
 
 @LOSSES.register("line_intersection", needs_gt=False)
@@ -489,7 +676,7 @@ class LineIntersectionLoss(AlignmentLoss):
     """The line-intersection metric as a loss on each iteration's transformed source.
 
     Args:
-        variant: ``paper`` (default) or ``authors`` (see the module docstring).
+        variant: ``paper`` (default), ``authors`` or ``linereg`` (see the module docstring).
         seed: seeds the line generator (reproducible runs); fresh randomness when ``None``.
         discount, last_k, normalize_iterations: iteration weighting (:class:`AlignmentLoss`).
         **options: any :class:`LineMetricOptions` field, overriding the variant's default.

@@ -15,20 +15,32 @@ Candidate search, without ever testing all point-line pairs:
   ``p``. A point is therefore accepted only in the cell whose parameter interval contains its
   own parameter ``t_p``, which finds every candidate exactly once.
 
-Work is ``O(N + L * (cells crossed + points met))``; memory ``O(N + L + hits)``.
+Work is ``O(N + L * (cells crossed + points met))``; memory ``O(N + L + hits)``. Each line is
+scanned in two phases: a branch-free pass over the points of the cells it crosses collects the
+candidates (a data-dependent branch per tested point costs more than the test itself), then the
+neighbour test and the weights run on those few.
 
-The kernels are deliberately serial: torch's OpenMP team already uses the cores, a second
-(numba) thread team only competes with it, and data-loader workers and DDP processes would
-oversubscribe the machine. Serial, they meet the loss targets on the 2-core CPU
-(``scripts/bench_loss.py``).
+Threads: :func:`line_intersections` takes all clouds of a batch (sources and targets) at once
+and runs work items of a few hundred lines in parallel (``numba.prange``; the number of threads
+is numba's, ``NUMBA_NUM_THREADS`` or ``numba.set_num_threads``). Results do not depend on it. On
+a machine shared with other processes, OpenMP threads that spin while they wait (the default of
+the GNU runtime, used by torch too) multiply the time of every parallel region: run with
+``OMP_WAIT_POLICY=PASSIVE`` set before torch is imported, or with one thread
+(``scripts/bench_loss.py --batch 8`` measures both).
 """
 
 from __future__ import annotations
 
 import math
+import os
 
 import numba
 import numpy as np
+
+if "NUMBA_THREADING_LAYER" not in os.environ and "NUMBA_THREADING_LAYER_PRIORITY" not in os.environ:
+    # Try OpenMP first: numba's default tries TBB first and warns when a library loaded earlier
+    # (Open3D ships one) is too old for it.
+    numba.config.THREADING_LAYER_PRIORITY = ["omp", "tbb", "workqueue"]
 
 MODE_CANDIDATES = 0  # Insec1: every candidate point is an intersection
 MODE_CONVEX = 1  # paper Eq. (7): candidates whose k nearest neighbours are candidates too
@@ -40,13 +52,19 @@ _MIN_GRID_CELLS = 4096
 
 
 def grid_cell_size(points: np.ndarray, radius: np.ndarray, cell_factor: float) -> float:
-    """Cell edge for the dilated grid: ``cell_factor`` times the median radius, bounded so the
-    grid has at most ``max(4096, 8 N)`` cells (memory linear in ``N``)."""
+    """Cell edge for the dilated grid: ``cell_factor * (N / 1024)^(1/6)`` times the median radius,
+    bounded so the grid has at most ``max(4096, 8 N)`` cells (memory linear in ``N``).
+
+    The growth with ``N`` balances the two costs of a line: cells crossed (``~ 1 / cell``) and
+    points tested (``~ N * cell^2`` on a surface), whose optimum is ``cell ~ N^(-1/3)``, while
+    the radius shrinks as ``N^(-1/2)`` (``scripts/bench_loss.py`` shows the effect).
+    """
     extent = points.max(axis=0) - points.min(axis=0) + 2.0 * radius.max()
     cap = max(_MIN_GRID_CELLS, _GRID_CELL_CAP_PER_POINT * len(points))
-    floor = float((np.prod(np.maximum(extent, 1e-12)) / cap) ** (1.0 / 3.0))
+    floor = float((np.prod(np.maximum(extent, 1e-300)) / cap) ** (1.0 / 3.0))
     floor = max(floor, float(extent.max()) / 1024.0)
-    return max(cell_factor * float(np.median(radius)), floor, 1e-12)
+    factor = cell_factor * (len(points) / 1024.0) ** (1.0 / 6.0)
+    return max(factor * float(np.median(radius)), floor, float(np.finfo(np.float64).tiny))
 
 
 @numba.njit(cache=True)
@@ -54,7 +72,7 @@ def build_dilated_grid(points, radius, cell):
     """CSR grid: cell ``c`` holds ``cell_points[cell_start[c]:cell_start[c+1]]``.
 
     Returns ``(grid_min (3,), dims (3,) int64, cell_start (C+1,), cell_points (S,),
-    cell_xyzr (S, 4))``; ``cell_xyzr`` repeats each stored point's coordinates and radius in
+    cell_xyzr (4, S))``; ``cell_xyzr`` repeats each stored point's coordinates and radius in
     cell order so that the line walk reads memory sequentially.
     """
     n = points.shape[0]
@@ -89,13 +107,13 @@ def build_dilated_grid(points, radius, cell):
                     c = (x * dims[1] + y) * dims[2] + z
                     cell_points[fill[c]] = i
                     fill[c] += 1
-    cell_xyzr = np.empty((cell_points.shape[0], 4))
+    cell_xyzr = np.empty((4, cell_points.shape[0]))
     for s in range(cell_points.shape[0]):
         i = cell_points[s]
-        cell_xyzr[s, 0] = points[i, 0]
-        cell_xyzr[s, 1] = points[i, 1]
-        cell_xyzr[s, 2] = points[i, 2]
-        cell_xyzr[s, 3] = radius[i]
+        cell_xyzr[0, s] = points[i, 0]
+        cell_xyzr[1, s] = points[i, 1]
+        cell_xyzr[2, s] = points[i, 2]
+        cell_xyzr[3, s] = radius[i]
     return grid_min, dims, cell_start, cell_points, cell_xyzr
 
 
@@ -169,7 +187,7 @@ def _pierce_weights(points, a, b, c, ox, oy, oz, ux, uy, uz, out):
     return True
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, inline="always")
 def _scan_line(
     line,
     origins,
@@ -185,12 +203,19 @@ def _scan_line(
     cell_start,
     cell_points,
     cell_xyzr,
-    write,
-    out_start,
+    scratch_entry,
+    scratch_d2,
     out_anchor,
     out_weight,
+    out_start,
+    out_stop,
 ):
-    """Walk one line through the grid; count (``write=False``) or write its intersections."""
+    """Walk one line through the grid of one cloud and return its number of intersections.
+
+    Intersection ``j`` of the line is written to row ``out_start + j`` of ``out_anchor`` and
+    ``out_weight`` when that row is below ``out_stop``; the ones beyond are only counted.
+    ``scratch_entry`` and ``scratch_d2`` hold at least as many rows as the grid has entries.
+    """
     ox, oy, oz = origins[line, 0], origins[line, 1], origins[line, 2]
     ux, uy, uz = dirs[line, 0], dirs[line, 1], dirs[line, 2]
     nx, ny, nz = dims[0], dims[1], dims[2]
@@ -204,7 +229,9 @@ def _scan_line(
     ix, sx, tmx, tdx = _axis_setup(ox, ux, grid_min[0], cell, nx, t_start)
     iy, sy, tmy, tdy = _axis_setup(oy, uy, grid_min[1], cell, ny, t_start)
     iz, sz, tmz, tdz = _axis_setup(oz, uz, grid_min[2], cell, nz, t_start)
-    count = 0
+    # Phase 1: collect the candidates in walk order with a branch-free test. Each stored point is
+    # kept only in the cell whose parameter interval holds its foot point (dedup).
+    found = 0
     t_enter = -np.inf
     while True:
         # Next boundary crossed, and whether this is the last cell on the line.
@@ -223,57 +250,15 @@ def _scan_line(
             t_exit = np.inf
         c = (ix * ny + iy) * nz + iz
         for s in range(cell_start[c], cell_start[c + 1]):
-            dx = cell_xyzr[s, 0] - ox
-            dy = cell_xyzr[s, 1] - oy
-            dz = cell_xyzr[s, 2] - oz
+            dx = cell_xyzr[0, s] - ox
+            dy = cell_xyzr[1, s] - oy
+            dz = cell_xyzr[2, s] - oz
             t = dx * ux + dy * uy + dz * uz
-            r = cell_xyzr[s, 3]
+            r = cell_xyzr[3, s]
             d2 = max(dx * dx + dy * dy + dz * dz - t * t, 0.0)
-            # Most stored points are far from the line: reject on distance first, then keep the
-            # point only in the cell whose parameter interval holds its foot point (dedup).
-            if d2 + eps2 >= r * r:
-                continue
-            if t < t_enter or t >= t_exit:
-                continue
-            i = cell_points[s]
-            d = math.sqrt(d2 + eps2)
-            if mode == MODE_CANDIDATES:
-                if write:
-                    out_anchor[out_start + count] = i
-                    out_weight[out_start + count, 0] = 1.0
-                count += 1
-                continue
-            # MODE_CONVEX: neighbours must be candidates under their own radius;
-            # MODE_TRIPLET: neighbours must be within the anchor's radius.
-            ok = True
-            total = d
-            for j in range(k):
-                nb = neighbors[i, j]
-                dn = _line_distance(points, nb, ox, oy, oz, ux, uy, uz, eps2)
-                limit = r if mode == MODE_TRIPLET else radius[nb]
-                if dn >= limit:
-                    ok = False
-                    break
-                total += dn
-            if not ok:
-                continue
-            if write:
-                row = out_start + count
-                out_anchor[row] = i
-                if mode == MODE_PIERCE and _pierce_weights(
-                    points, i, neighbors[i, 0], neighbors[i, 1], ox, oy, oz, ux, uy, uz, out_weight[row]
-                ):
-                    count += 1
-                    continue
-                if total > 0.0:
-                    out_weight[row, 0] = d / total
-                    for j in range(k):
-                        dn = _line_distance(points, neighbors[i, j], ox, oy, oz, ux, uy, uz, eps2)
-                        out_weight[row, j + 1] = dn / total
-                else:
-                    for j in range(k + 1):
-                        out_weight[row, j] = 1.0 / (k + 1)
-            count += 1
+            scratch_entry[found] = s
+            scratch_d2[found] = d2
+            found += (d2 + eps2 < r * r) & (t >= t_enter) & (t < t_exit)
         if last:
             break
         t_enter = t_exit
@@ -286,79 +271,254 @@ def _scan_line(
         else:
             iz += sz
             tmz += tdz
+    # Phase 2: the neighbour test and the weights of each candidate.
+    count = 0
+    for j in range(found):
+        s = scratch_entry[j]
+        i = cell_points[s]
+        r = cell_xyzr[3, s]
+        d = math.sqrt(scratch_d2[j] + eps2)
+        row = out_start + count
+        write = row < out_stop
+        if mode == MODE_CANDIDATES:
+            if write:
+                out_anchor[row] = i
+                out_weight[row, 0] = 1.0
+            count += 1
+            continue
+        # MODE_CONVEX: neighbours must be candidates under their own radius;
+        # MODE_TRIPLET: neighbours must be within the anchor's radius.
+        ok = True
+        total = d
+        for m in range(k):
+            nb = neighbors[i, m]
+            dn = _line_distance(points, nb, ox, oy, oz, ux, uy, uz, eps2)
+            limit = r if mode == MODE_TRIPLET else radius[nb]
+            if dn >= limit:
+                ok = False
+                break
+            total += dn
+        if not ok:
+            continue
+        count += 1
+        if not write:
+            continue
+        out_anchor[row] = i
+        if mode == MODE_PIERCE and _pierce_weights(
+            points, i, neighbors[i, 0], neighbors[i, 1], ox, oy, oz, ux, uy, uz, out_weight[row]
+        ):
+            continue
+        if total > 0.0:
+            out_weight[row, 0] = d / total
+            for m in range(k):
+                dn = _line_distance(points, neighbors[i, m], ox, oy, oz, ux, uy, uz, eps2)
+                out_weight[row, m + 1] = dn / total
+        else:
+            for m in range(k + 1):
+                out_weight[row, m] = 1.0 / (k + 1)
     return count
 
 
 @numba.njit(cache=True)
-def line_intersections(origins, dirs, points, radius, neighbors, mode, eps2, cell):
-    """All intersections of ``L`` lines with one cloud.
+def _concatenated_grids(points, point_offsets, radius, cells):
+    """One dilated grid per cloud, stored back to back.
 
-    Args:
-        origins, dirs: ``(L, 3)`` float64 line points and unit directions.
-        points: ``(N, 3)`` float64.
-        radius: ``(N,)`` float64 per-point cylinder radius (``delta`` in the paper).
-        neighbors: ``(N, k)`` int64 k nearest neighbours of each point (self excluded);
-            ``(N, 0)`` for ``MODE_CANDIDATES``.
-        mode: ``MODE_CANDIDATES``, ``MODE_CONVEX`` or ``MODE_TRIPLET``.
-        eps2: added under the square root of every point-line distance.
-        cell: grid cell edge (see :func:`grid_cell_size`).
-
-    Returns:
-        ``offsets (L+1,)`` int64 (intersections of line ``l`` are ``offsets[l]:offsets[l+1]``),
-        ``anchors (H,)`` int64 anchor point of each intersection, ``weights (H, k+1)`` float64
-        convex weights of the anchor and its neighbours (detached; Eq. 7's ``d_p / sum d``).
+    Returns ``grid_min (C, 3)``, ``dims (C, 3)``, ``cell_offsets (C+1,)`` (the CSR array of
+    cloud ``c`` is ``cell_start[cell_offsets[c]:cell_offsets[c+1]]``), and the concatenated
+    ``cell_start`` (indices into the concatenated entries), ``cell_points`` (cloud-local
+    indices) and ``cell_xyzr``.
     """
-    n_lines = origins.shape[0]
-    k = neighbors.shape[1]
-    grid_min, dims, cell_start, cell_points, cell_xyzr = build_dilated_grid(points, radius, cell)
-    counts = np.zeros(n_lines + 1, dtype=np.int64)
-    dummy_anchor = np.empty(0, dtype=np.int64)
-    dummy_weight = np.empty((0, k + 1))
-    for line in range(n_lines):
-        counts[line + 1] = _scan_line(
+    n_clouds = cells.shape[0]
+    grid_min = np.empty((n_clouds, 3))
+    dims = np.empty((n_clouds, 3), dtype=np.int64)
+    cell_offsets = np.zeros(n_clouds + 1, dtype=np.int64)
+    entry_offsets = np.zeros(n_clouds + 1, dtype=np.int64)
+    grids = []
+    for c in range(n_clouds):
+        p0, p1 = point_offsets[c], point_offsets[c + 1]
+        grid = build_dilated_grid(points[p0:p1], radius[p0:p1], cells[c])
+        grid_min[c] = grid[0]
+        dims[c] = grid[1]
+        cell_offsets[c + 1] = cell_offsets[c] + grid[2].shape[0]
+        entry_offsets[c + 1] = entry_offsets[c] + grid[3].shape[0]
+        grids.append(grid)
+    cell_start = np.empty(cell_offsets[-1], dtype=np.int64)
+    cell_points = np.empty(entry_offsets[-1], dtype=np.int64)
+    cell_xyzr = np.empty((4, entry_offsets[-1]))
+    for c in range(n_clouds):
+        _, _, start, stored, xyzr = grids[c]
+        cell_start[cell_offsets[c] : cell_offsets[c + 1]] = start + entry_offsets[c]
+        cell_points[entry_offsets[c] : entry_offsets[c + 1]] = stored
+        cell_xyzr[:, entry_offsets[c] : entry_offsets[c + 1]] = xyzr
+    return grid_min, dims, cell_offsets, cell_start, cell_points, cell_xyzr
+
+
+@numba.njit(cache=True)
+def _scan_lines(
+    cloud,
+    first,
+    stop,
+    origins,
+    dirs,
+    points,
+    point_offsets,
+    radius,
+    neighbors,
+    mode,
+    eps2,
+    cells,
+    grids,
+    counts,
+    out_anchor,
+    out_weight,
+    out_start,
+    out_stop,
+):
+    """Scan lines ``first:stop`` against cloud ``cloud``, writing their intersections back to back
+    from row ``out_start`` (only rows below ``out_stop``); fills ``counts`` and returns the total."""
+    grid_min, dims, cell_offsets, cell_start, cell_points, cell_xyzr = grids
+    p0, p1 = point_offsets[cloud], point_offsets[cloud + 1]
+    c0, c1 = cell_offsets[cloud], cell_offsets[cloud + 1]
+    cloud_points, cloud_radius, cloud_neighbors = points[p0:p1], radius[p0:p1], neighbors[p0:p1]
+    entries = cell_start[c1 - 1] - cell_start[c0]
+    scratch_entry = np.empty(entries + 1, dtype=np.int64)
+    scratch_d2 = np.empty(entries + 1)
+    row = out_start
+    for line in range(first, stop):
+        n = _scan_line(
             line,
             origins,
             dirs,
+            cloud_points,
+            cloud_radius,
+            cloud_neighbors,
+            mode,
+            eps2,
+            grid_min[cloud],
+            dims[cloud],
+            cells[cloud],
+            cell_start[c0:c1],
+            cell_points,
+            cell_xyzr,
+            scratch_entry,
+            scratch_d2,
+            out_anchor,
+            out_weight,
+            row,
+            out_stop,
+        )
+        counts[line] = n
+        row += n
+    return row - out_start
+
+
+@numba.njit(cache=True, parallel=True)
+def line_intersections(origins, dirs, line_offsets, points, point_offsets, radius, neighbors, mode, eps2, cells, chunk):
+    """All intersections of lines with clouds, for a whole batch at once.
+
+    Cloud ``c`` is ``points[point_offsets[c]:point_offsets[c+1]]``; its lines are rows
+    ``line_offsets[c]:line_offsets[c+1]`` of ``origins`` and ``dirs``. Work items of at most
+    ``chunk`` lines of one cloud run in parallel (numba threads, across clouds and lines); each
+    writes into its own slice of a buffer, and a final pass copies the slices out in line order,
+    so the result does not depend on the number of threads. An item whose lines have more
+    intersections than its slice holds is scanned again, straight into the output.
+
+    Args:
+        origins, dirs: ``(L, 3)`` float64 line points and unit directions.
+        line_offsets: ``(C+1,)`` int64 line range of each cloud.
+        points: ``(N, 3)`` float64, the clouds back to back.
+        point_offsets: ``(C+1,)`` int64 point range of each cloud.
+        radius: ``(N,)`` float64 per-point cylinder radius (``delta`` in the paper).
+        neighbors: ``(N, k)`` int64 cloud-local indices of the k nearest neighbours of each point
+            (self excluded); ``(N, 0)`` for ``MODE_CANDIDATES``.
+        mode: ``MODE_CANDIDATES``, ``MODE_CONVEX``, ``MODE_TRIPLET`` or ``MODE_PIERCE``.
+        eps2: added under the square root of every point-line distance.
+        cells: ``(C,)`` float64 grid cell edge of each cloud (see :func:`grid_cell_size`).
+        chunk: most lines per work item.
+
+    Returns:
+        ``offsets (L+1,)`` int64 (intersections of line ``l`` are ``offsets[l]:offsets[l+1]``),
+        ``anchors (H,)`` int64 cloud-local anchor point of each intersection, ``weights (H, k+1)``
+        float64 convex weights of the anchor and its neighbours (detached; Eq. 7's
+        ``d_p / sum d``, or barycentric for ``MODE_PIERCE``).
+    """
+    n_clouds = cells.shape[0]
+    n_lines = origins.shape[0]
+    k = neighbors.shape[1]
+    grids = _concatenated_grids(points, point_offsets, radius, cells)
+    items_per_cloud = np.empty(n_clouds, dtype=np.int64)
+    for c in range(n_clouds):
+        items_per_cloud[c] = (line_offsets[c + 1] - line_offsets[c] + chunk - 1) // chunk
+    n_items = items_per_cloud.sum()
+    item_cloud = np.empty(n_items, dtype=np.int64)
+    item_first = np.empty(n_items, dtype=np.int64)
+    item_stop = np.empty(n_items, dtype=np.int64)
+    buffer_start = np.zeros(n_items + 1, dtype=np.int64)
+    item = 0
+    for c in range(n_clouds):
+        for j in range(items_per_cloud[c]):
+            item_cloud[item] = c
+            item_first[item] = line_offsets[c] + j * chunk
+            item_stop[item] = min(line_offsets[c + 1], item_first[item] + chunk)
+            # Room for a few intersections per line; busier items are scanned twice.
+            buffer_start[item + 1] = buffer_start[item] + 4 * (item_stop[item] - item_first[item]) + 16
+            item += 1
+    buffer_anchor = np.empty(buffer_start[-1], dtype=np.int64)
+    buffer_weight = np.empty((buffer_start[-1], k + 1))
+    counts = np.zeros(n_lines, dtype=np.int64)
+    item_total = np.empty(n_items, dtype=np.int64)
+    for item in numba.prange(n_items):
+        item_total[item] = _scan_lines(
+            item_cloud[item],
+            item_first[item],
+            item_stop[item],
+            origins,
+            dirs,
             points,
+            point_offsets,
             radius,
             neighbors,
             mode,
             eps2,
-            grid_min,
-            dims,
-            cell,
-            cell_start,
-            cell_points,
-            cell_xyzr,
-            False,
-            0,
-            dummy_anchor,
-            dummy_weight,
+            cells,
+            grids,
+            counts,
+            buffer_anchor,
+            buffer_weight,
+            buffer_start[item],
+            buffer_start[item + 1],
         )
-    offsets = np.cumsum(counts)
+    offsets = np.zeros(n_lines + 1, dtype=np.int64)
+    offsets[1:] = np.cumsum(counts)
     anchors = np.empty(offsets[-1], dtype=np.int64)
-    weights = np.zeros((offsets[-1], k + 1))
-    for line in range(n_lines):
-        if offsets[line + 1] > offsets[line]:
-            _scan_line(
-                line,
+    weights = np.empty((offsets[-1], k + 1))
+    for item in numba.prange(n_items):
+        first, stop, total = item_first[item], item_stop[item], item_total[item]
+        out = offsets[first]
+        if total <= buffer_start[item + 1] - buffer_start[item]:
+            begin = buffer_start[item]
+            anchors[out : out + total] = buffer_anchor[begin : begin + total]
+            weights[out : out + total] = buffer_weight[begin : begin + total]
+        else:
+            _scan_lines(
+                item_cloud[item],
+                first,
+                stop,
                 origins,
                 dirs,
                 points,
+                point_offsets,
                 radius,
                 neighbors,
                 mode,
                 eps2,
-                grid_min,
-                dims,
-                cell,
-                cell_start,
-                cell_points,
-                cell_xyzr,
-                True,
-                offsets[line],
+                cells,
+                grids,
+                counts,
                 anchors,
                 weights,
+                out,
+                offsets[stop],
             )
     return offsets, anchors, weights
 

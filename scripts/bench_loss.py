@@ -1,16 +1,29 @@
 """Benchmark the line-intersection metric: forward and backward time and peak memory.
 
-    python scripts/bench_loss.py                      # the README table
+    python scripts/bench_loss.py                      # the README table (numba backend on the CPU)
     python scripts/bench_loss.py --json               # one JSON object per row
     python scripts/bench_loss.py --points 1024 --lines 20000 --repeats 10
+    python scripts/bench_loss.py --backend torch      # the device-native backend (here on the CPU)
+    python scripts/bench_loss.py --device cuda        # on a GPU (backend auto = torch)
+    python scripts/bench_loss.py --batch 8 --points 1024 --lines 15000   # threads x load table
 
 Each row is one pair (source and target with ``N`` points each, ``L`` lines), timed as the
-median over ``--repeats`` runs after a warm-up. Peak memory is measured in a fresh subprocess:
-the largest resident-set size seen during one forward+backward (sampled every millisecond from
-``/proc/self/statm``) above the resident size just before it, after a small warm-up call. The dense reference of
-``tests/line_reference.py``
-(every point-line distance materialised) runs in the same process where ``N * L`` is at most
-``--dense-limit``; the last column is its time divided by ours.
+median over ``--repeats`` runs after a warm-up. Every row also times, in the same process, the
+all-pairs compiled reference: a numba loop over all lines (``prange``, all threads) testing
+every point of *one* cloud against every line, with no spatial index; the column
+``ours / all-pairs`` is our forward+backward over *both* clouds divided by it. Peak memory is
+measured in a fresh subprocess: the largest resident-set size seen during one forward+backward
+(sampled every millisecond from ``/proc/self/statm``) above the resident size just before it,
+after a small warm-up call (on CUDA: the rise of ``torch.cuda.max_memory_allocated``). The
+dense reference of ``tests/line_reference.py`` (every point-line distance materialised) runs
+where ``N * L`` is at most ``--dense-limit``; ``dense / ours`` is its time divided by ours.
+
+``--batch B`` instead times a batch of ``B`` pairs with 1 and 2 threads (torch and numba alike),
+on a quiet machine and with another process spinning on one core (started and stopped here).
+
+OpenMP threads that spin while they wait make every parallel region wait for a descheduled
+thread on a busy machine; the script sets ``OMP_WAIT_POLICY=PASSIVE`` before importing torch
+unless the variable is already set (the header prints it).
 """
 
 from __future__ import annotations
@@ -26,6 +39,10 @@ import threading
 import time
 from pathlib import Path
 
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+
+import numba
+import numpy as np
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
@@ -89,14 +106,16 @@ def _sync(device: str) -> None:
 
 
 def time_sparse(src, tgt, options, repeats, device):
-    """Median forward and backward milliseconds."""
+    """Median forward and backward milliseconds of ``src``, ``tgt`` (``(N, 3)`` or ``(B, N, 3)``)."""
+    batched = src if src.ndim == 3 else src[None]
+    target = tgt if tgt.ndim == 3 else tgt[None]
     fwd, bwd = [], []
     for rep in range(repeats + 1):
-        leaf = src.clone().requires_grad_(True)
+        leaf = batched.clone().requires_grad_(True)
         gen = torch.Generator().manual_seed(rep)
         _sync(device)
         t0 = time.perf_counter()
-        value = line_intersection_metric(leaf[None], tgt[None], options=options, generator=gen).value.sum()
+        value = line_intersection_metric(leaf, target, options=options, generator=gen).value.sum()
         _sync(device)
         t1 = time.perf_counter()
         value.backward()
@@ -108,15 +127,51 @@ def time_sparse(src, tgt, options, repeats, device):
     return statistics.median(fwd), statistics.median(bwd)
 
 
-def peak_memory_mb(n: int, n_lines: int, variant: str) -> float:
+@numba.njit(parallel=True, cache=True)
+def _all_pairs_candidates(origins, dirs, points, radius):
+    """Number of points within ``radius`` of each line, testing every point-line pair."""
+    counts = np.zeros(origins.shape[0], dtype=np.int64)
+    r2 = radius * radius
+    for line in numba.prange(origins.shape[0]):
+        ox, oy, oz = origins[line, 0], origins[line, 1], origins[line, 2]
+        ux, uy, uz = dirs[line, 0], dirs[line, 1], dirs[line, 2]
+        found = 0
+        for i in range(points.shape[0]):
+            dx = points[i, 0] - ox
+            dy = points[i, 1] - oy
+            dz = points[i, 2] - oz
+            t = dx * ux + dy * uy + dz * uz
+            if dx * dx + dy * dy + dz * dz - t * t < r2:
+                found += 1
+        counts[line] = found
+    return counts
+
+
+def time_all_pairs(src, tgt, n_lines, repeats):
+    """Median milliseconds of the all-pairs compiled candidate search for one cloud (CPU)."""
+    src_cpu, tgt_cpu = src.cpu(), tgt.cpu()
+    origins, dirs = sample_lines(src_cpu, tgt_cpu, n_lines, torch.Generator().manual_seed(0))
+    points = src_cpu.double().numpy()
+    radius = 0.866 * float(torch.cdist(src_cpu[:512], src_cpu).topk(3, largest=False).values[:, 1:].mean())
+    _all_pairs_candidates(origins[:2], dirs[:2], points[:8], radius)  # compile outside the timing
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        _all_pairs_candidates(origins, dirs, points, radius)
+        times.append(1000 * (time.perf_counter() - t0))
+    return statistics.median(times)
+
+
+def peak_memory_mb(n: int, n_lines: int, variant: str, backend: str) -> float:
     """Peak MB above baseline of one forward+backward, measured in a fresh process."""
     probe = [sys.executable, __file__, "--memory-probe", str(n), str(n_lines), "--variant", variant]
+    probe += ["--backend", backend]
     return float(subprocess.run(probe, check=True, capture_output=True, text=True).stdout.strip())
 
 
-def _memory_probe(n: int, n_lines: int, variant: str) -> None:
+def _memory_probe(n: int, n_lines: int, variant: str, backend: str) -> None:
     small_src, small_tgt = make_pair(256, "cpu")
-    options = LineMetricOptions.for_variant(variant, num_lines=n_lines)
+    options = LineMetricOptions.for_variant(variant, num_lines=n_lines, backend=backend)
     line_intersection_metric(
         small_src[None].requires_grad_(True), small_tgt[None], options=options
     ).value.sum().backward()
@@ -125,6 +180,17 @@ def _memory_probe(n: int, n_lines: int, variant: str) -> None:
     with PeakMemory() as mem:
         line_intersection_metric(leaf[None], tgt[None], options=options).value.sum().backward()
     print(f"{mem.peak_mb:.1f}")
+
+
+def cuda_peak_memory_mb(src, tgt, options) -> float:
+    """Peak MB of CUDA memory allocated during one forward+backward, above the allocation before it."""
+    torch.cuda.synchronize()
+    torch.cuda.reset_peak_memory_stats()
+    base = torch.cuda.memory_allocated()
+    leaf = src.clone().requires_grad_(True)
+    line_intersection_metric(leaf[None], tgt[None], options=options).value.sum().backward()
+    torch.cuda.synchronize()
+    return (torch.cuda.max_memory_allocated() - base) / 2**20
 
 
 def time_dense(src, tgt, options, device):
@@ -140,6 +206,47 @@ def time_dense(src, tgt, options, device):
     return 1000 * (time.perf_counter() - t0)
 
 
+def set_threads(threads: int) -> None:
+    """Use ``threads`` threads in torch and in the numba kernels."""
+    torch.set_num_threads(threads)
+    numba.set_num_threads(min(threads, numba.config.NUMBA_NUM_THREADS))
+
+
+def batch_table(args) -> None:
+    """Batch of ``--batch`` pairs with 1 and 2 threads, quiet and with one core taken."""
+    n, n_lines = args.points[0], args.lines[0]
+    options = LineMetricOptions.for_variant(args.variant, num_lines=n_lines, backend=args.backend)
+    pairs = [make_pair(n, args.device) for _ in range(args.batch)]
+    src = torch.stack([p[0] for p in pairs])
+    tgt = torch.stack([p[1] for p in pairs])
+    print(
+        f"torch {torch.__version__}, numba {numba.__version__}, "
+        f"OMP_WAIT_POLICY={os.environ.get('OMP_WAIT_POLICY')}, device {args.device}, backend {args.backend}, "
+        f"variant {args.variant}, {n} points, {n_lines} lines"
+    )
+    print(
+        "| batch | threads | other process on one core | fwd+bwd ms | ms per pair | all-pairs ms | ours / all-pairs |"
+    )
+    print("|---:|---:|---|---:|---:|---:|---:|")
+    for loaded in (False, True):
+        hog = subprocess.Popen([sys.executable, "-c", "while True: pass"]) if loaded else None
+        try:
+            for threads in (1, 2):
+                set_threads(threads)
+                fwd, bwd = time_sparse(src, tgt, options, args.repeats, args.device)
+                ref = time_all_pairs(src[0], tgt[0], n_lines, min(3, args.repeats))
+                total = fwd + bwd
+                print(
+                    f"| {args.batch} | {threads} | {'yes' if loaded else 'no'} | {total:.1f} | "
+                    f"{total / args.batch:.1f} | {ref:.1f} | {total / args.batch / ref:.2f} |",
+                    flush=True,
+                )
+        finally:
+            if hog is not None:
+                hog.kill()
+                hog.wait()
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--points", type=int, nargs="+", default=[1024, 5000, 10000, 100000])
@@ -147,28 +254,46 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--dense-limit", type=float, default=5.2e7, help="largest N * L given to the dense reference")
     parser.add_argument("--device", default="cpu")
-    parser.add_argument("--variant", default="paper", choices=["paper", "authors"])
+    parser.add_argument("--backend", default="auto", choices=["auto", "numba", "torch"])
+    parser.add_argument("--variant", default="paper", choices=["paper", "authors", "linereg"])
+    parser.add_argument("--threads", type=int, help="torch and numba threads (default: as configured)")
+    parser.add_argument("--batch", type=int, help="time a batch of this many pairs with 1 and 2 threads instead")
     parser.add_argument("--json", action="store_true", help="print one JSON object per row instead of a table")
     parser.add_argument("--memory-probe", type=int, nargs=2, help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.memory_probe:
-        _memory_probe(*args.memory_probe, args.variant)
+        _memory_probe(*args.memory_probe, args.variant, args.backend)
+        return
+    if args.device.startswith("cuda") and not torch.cuda.is_available():
+        parser.error(f"--device {args.device}: this torch build ({torch.__version__}) sees no CUDA device")
+    if args.threads is not None:
+        set_threads(args.threads)
+    if args.batch is not None:
+        batch_table(args)
         return
 
     rows = []
     if not args.json:
         print(
-            f"torch {torch.__version__}, {torch.get_num_threads()} threads, "
-            f"device {args.device}, variant {args.variant}"
+            f"torch {torch.__version__}, {torch.get_num_threads()} torch threads, numba {numba.__version__} "
+            f"({numba.get_num_threads()} threads), OMP_WAIT_POLICY={os.environ.get('OMP_WAIT_POLICY')}, "
+            f"device {args.device}, backend {args.backend}, variant {args.variant}"
         )
-        print("| N | L | forward ms | backward ms | total ms | peak MB | dense ms | dense / ours |")
-        print("|---:|---:|---:|---:|---:|---:|---:|---:|")
+        print(
+            "| N | L | forward ms | backward ms | total ms | peak MB | all-pairs ms (one cloud) "
+            "| ours / all-pairs | dense ms | dense / ours |"
+        )
+        print("|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
     for n in args.points:
         src, tgt = make_pair(n, args.device)
         for n_lines in args.lines:
-            options = LineMetricOptions.for_variant(args.variant, num_lines=n_lines)
+            options = LineMetricOptions.for_variant(args.variant, num_lines=n_lines, backend=args.backend)
             fwd, bwd = time_sparse(src, tgt, options, args.repeats, args.device)
-            peak = peak_memory_mb(n, n_lines, args.variant) if args.device == "cpu" else math.nan
+            if args.device == "cpu":
+                peak = peak_memory_mb(n, n_lines, args.variant, args.backend)
+            else:
+                peak = cuda_peak_memory_mb(src, tgt, options)
+            ref = time_all_pairs(src, tgt, n_lines, min(3, args.repeats))
             dense = time_dense(src, tgt, options, args.device) if n * n_lines <= args.dense_limit else math.nan
             row = {
                 "n_points": n,
@@ -176,6 +301,8 @@ def main() -> None:
                 "fwd_ms": round(fwd, 2),
                 "bwd_ms": round(bwd, 2),
                 "peak_mb": round(peak, 1),
+                "all_pairs_ms": round(ref, 2),
+                "ratio_all_pairs": round((fwd + bwd) / ref, 2),
                 "dense_ms": None if math.isnan(dense) else round(dense, 1),
                 "ratio": None if math.isnan(dense) else round(dense / (fwd + bwd), 1),
             }
@@ -186,8 +313,8 @@ def main() -> None:
                 dense_txt = "—" if row["dense_ms"] is None else f"{row['dense_ms']:.0f}"
                 ratio_txt = "—" if row["ratio"] is None else f"{row['ratio']:.0f}x"
                 print(
-                    f"| {n} | {n_lines} | {fwd:.1f} | {bwd:.1f} | {fwd + bwd:.1f} | {peak:.0f} "
-                    f"| {dense_txt} | {ratio_txt} |",
+                    f"| {n} | {n_lines} | {fwd:.1f} | {bwd:.1f} | {fwd + bwd:.1f} | {peak:.0f} | {ref:.1f} "
+                    f"| {row['ratio_all_pairs']:.2f} | {dense_txt} | {ratio_txt} |",
                     flush=True,
                 )
 

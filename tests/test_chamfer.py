@@ -79,3 +79,47 @@ def test_losses_from_the_registry(name):
 def test_bad_input(bad):
     with pytest.raises(ValueError):
         chamfer_distance(bad, torch.rand(1, 5, 3))
+
+
+@pytest.mark.parametrize("fn", [chamfer_distance, chamfer_welsch_distance])
+@pytest.mark.parametrize(
+    ("lengths", "error", "message"),
+    [
+        (torch.tensor([64, -5]), ValueError, r"x_lengths\[1\] = -5 is outside \[1, 64\]"),
+        (torch.tensor([64, 65]), ValueError, r"x_lengths\[1\] = 65 is outside \[1, 64\]"),
+        (torch.tensor([64, 0]), ValueError, r"x_lengths\[1\] = 0"),
+        (torch.tensor([64.0, 59.0]), TypeError, "x_lengths must have an integer dtype"),
+        (torch.tensor([64, 64, 64]), ValueError, r"x_lengths must have shape \(2,\)"),
+    ],
+)
+def test_bad_lengths_raise(fn, lengths, error, message):
+    with pytest.raises(error, match=message):
+        fn(torch.rand(2, 64, 3), torch.rand(2, 30, 3), lengths, None)
+
+
+@pytest.mark.parametrize("nu0", [0.0, -1.0, float("nan"), float("inf")])
+def test_cdw_rejects_a_bad_nu0(nu0):
+    with pytest.raises(ValueError, match="nu0 must be a finite number > 0"):
+        chamfer_welsch_distance(torch.rand(1, 10, 3), torch.rand(1, 10, 3), nu0=nu0)
+    with pytest.raises(ValueError, match="nu0 must be a finite number > 0"):
+        build_loss({"name": "chamfer_welsch", "nu0": nu0})
+
+
+@pytest.mark.parametrize("dtype", [torch.float16, torch.bfloat16, torch.float32, torch.float64])
+@pytest.mark.parametrize("fn", [chamfer_distance, chamfer_welsch_distance])
+def test_every_float_dtype_gives_a_finite_value_and_gradient(fn, dtype):
+    g = torch.Generator().manual_seed(3)
+    x = (0.01 * torch.rand(1, 100, 3, generator=g)).to(dtype).requires_grad_(True)
+    y = (0.01 * torch.rand(1, 120, 3, generator=g)).to(dtype)
+    value = fn(x, y)
+    assert value.dtype == dtype and torch.isfinite(value).all() and value.item() > 0
+    value.sum().backward()
+    assert torch.isfinite(x.grad).all() and x.grad.abs().sum() > 0
+
+
+def test_cdw_at_exact_alignment_is_a_defined_zero():
+    x = torch.rand(1, 50, 3, requires_grad=True)
+    value = chamfer_welsch_distance(x, x.detach().clone())
+    assert value.item() == 0.0
+    value.sum().backward()
+    assert torch.isfinite(x.grad).all()

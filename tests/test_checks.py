@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import torch
 
-from linereg.checks import check_points, check_same_batch, check_transform
+from linereg.checks import check_lengths, check_points, check_same_batch, check_transform
 from linereg.se3 import se3_exp
 
 
@@ -114,3 +114,28 @@ def test_check_same_batch():
     check_same_batch(torch.zeros(2, 5, 3), torch.zeros(2, 4, 4), "src", "T")
     with pytest.raises(ValueError, match="src and T must share the batch size, got 2 and 3"):
         check_same_batch(torch.zeros(2, 5, 3), torch.zeros(3, 4, 4), "src", "T")
+
+
+class TestCheckLengths:
+    def test_none_passes_through(self):
+        assert check_lengths(None, "lengths", 2, 10) is None
+
+    @pytest.mark.parametrize("lengths", [torch.tensor([3, 10]), np.array([3, 10], dtype=np.int32)])
+    def test_accepts_integers_and_returns_a_cpu_tensor(self, lengths):
+        out = check_lengths(lengths, "lengths", 2, 10, min_length=3)
+        assert out.dtype == torch.int64 and out.tolist() == [3, 10]
+
+    @pytest.mark.parametrize(
+        ("lengths", "error", "message"),
+        [
+            ([3, 4], TypeError, "lengths must be a torch.Tensor or numpy array of integers, got list"),
+            (torch.tensor([3.0, 4.0]), TypeError, "lengths must have an integer dtype, got torch.float32"),
+            (torch.tensor([True, False]), TypeError, "lengths must have an integer dtype"),
+            (torch.tensor([[3, 4]]), ValueError, r"lengths must have shape \(2,\) \(one length per sample\)"),
+            (torch.tensor([3, -1]), ValueError, r"lengths\[1\] = -1 is outside \[1, 10\]"),
+            (torch.tensor([11, 4]), ValueError, r"lengths\[0\] = 11 is outside \[1, 10\]"),
+        ],
+    )
+    def test_rejects(self, lengths, error, message):
+        with pytest.raises(error, match=message):
+            check_lengths(lengths, "lengths", 2, 10)

@@ -285,3 +285,101 @@ def test_cuda_matches_cpu():
     cpu = line_intersection_metric(src[None], tgt[None], lines=lines).value
     gpu = line_intersection_metric(src[None].cuda(), tgt[None].cuda(), lines=lines).value
     torch.testing.assert_close(gpu.cpu(), cpu, rtol=1e-5, atol=1e-6)
+
+
+@pytest.mark.parametrize(
+    ("lengths", "error", "message"),
+    [
+        (torch.tensor([64, -5]), ValueError, r"src_lengths\[1\] = -5 is outside \[3, 64\]"),
+        (torch.tensor([64, 65]), ValueError, r"src_lengths\[1\] = 65 is outside \[3, 64\]"),
+        (torch.tensor([64, 0]), ValueError, r"src_lengths\[1\] = 0"),
+        (torch.tensor([64.0, 59.5]), TypeError, "src_lengths must have an integer dtype"),
+        (torch.tensor([64]), ValueError, r"src_lengths must have shape \(2,\)"),
+        ([64, 59], TypeError, "src_lengths must be a torch.Tensor or numpy array"),
+    ],
+)
+def test_bad_lengths_raise_a_clear_error(lengths, error, message):
+    src, tgt = torch.rand(2, 64, 3), torch.rand(2, 40, 3)
+    with pytest.raises(error, match=message):
+        line_intersection_metric(src, tgt, lengths, None, options=LineMetricOptions(num_lines=100))
+
+
+@pytest.mark.parametrize(
+    "options", [LineMetricOptions.for_variant("authors"), LineMetricOptions(sampling="box_point_direction")]
+)
+def test_a_too_short_sample_is_named_for_every_sampler(options):
+    src, tgt = torch.rand(2, 64, 3), torch.rand(2, 40, 3)
+    with pytest.raises(ValueError, match=r"tgt_lengths\[0\] = 0 is outside \[3, 40\]"):
+        line_intersection_metric(src, tgt, None, torch.tensor([0, 40]), options=options)
+
+
+@pytest.mark.parametrize(
+    ("lines", "message"),
+    [
+        ([(np.zeros((5, 3)), np.tile([1.0, 0.0, 0.0], (5, 1)))], r"list of 2 \(origins, dirs\) pairs.*got 1 entries"),
+        ("lines", r"list of 2 \(origins, dirs\) pairs"),
+        ([(np.zeros((5, 3)), np.zeros((5, 3)))] * 2, r"lines\[0\] has a zero direction \(row 0\)"),
+        ([(np.zeros((5, 3)), np.ones((4, 3)))] * 2, r"lines\[0\] must hold origins and dirs of one shape"),
+        ([(np.full((5, 3), np.nan), np.ones((5, 3)))] * 2, r"lines\[0\] contains NaN or Inf"),
+        ([(np.zeros((5, 3)),)] * 2, r"lines\[0\] must be a pair"),
+    ],
+)
+def test_bad_lines_raise_a_clear_error(lines, message):
+    with pytest.raises(ValueError, match=message):
+        line_intersection_metric(
+            blob(50, 31)[None].expand(2, -1, -1), blob(50, 32)[None].expand(2, -1, -1), lines=lines
+        )
+
+
+def test_explicit_directions_need_not_be_unit():
+    src, tgt = blob(200, 33), blob(220, 34)
+    origins, dirs = lines_for(src, tgt, 600, seed=4)
+    unit = line_intersection_metric(src[None], tgt[None], lines=[(origins, dirs)]).value
+    scaled = line_intersection_metric(src[None], tgt[None], lines=[(origins, 3.0 * dirs)]).value
+    torch.testing.assert_close(scaled, unit)
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "message"),
+    [
+        ({"nu0": float("nan")}, "nu0 must be a finite number > 0"),
+        ({"nu0": float("inf")}, "nu0 must be a finite number > 0"),
+        ({"nu0": -1.0}, "nu0 must be a finite number > 0"),
+        ({"nu": float("nan")}, "nu must be a finite number > 0"),
+        ({"k": 1.5}, "k must be an integer >= 1"),
+        ({"distance_eps": float("nan")}, "distance_eps must be a finite number >= 0"),
+    ],
+)
+def test_non_finite_options_raise(kwargs, message):
+    with pytest.raises(ValueError, match=message):
+        LineMetricOptions(**kwargs)
+
+
+@pytest.mark.parametrize("dtype", [torch.float16, torch.bfloat16, torch.float32, torch.float64])
+@pytest.mark.parametrize("detach_weights", [True, False])
+def test_every_float_dtype_gives_a_finite_value_and_gradient(dtype, detach_weights):
+    src = transform_points(rigid([6, 0, -4], [0.05, 0.0, 0.0]), blob(300, 35)).to(dtype).requires_grad_(True)
+    tgt = blob(300, 36).to(dtype)
+    options = LineMetricOptions(num_lines=2000, detach_weights=detach_weights)
+    result = line_intersection_metric(src[None], tgt[None], options=options, generator=torch.Generator().manual_seed(0))
+    assert result.value.dtype == dtype and torch.isfinite(result.value).all() and result.value.item() > 0
+    result.value.sum().backward()
+    assert torch.isfinite(src.grad).all() and src.grad.abs().sum() > 0
+
+
+@pytest.mark.parametrize("scale", [1e-9, 1e-3, 1e3, 1e6])
+@pytest.mark.parametrize("intersection", ["convex", "pierce", "triplet"])
+def test_the_value_does_not_depend_on_the_unit_of_length(scale, intersection):
+    src = transform_points(rigid([5, -3, 2], [0.04, 0.0, 0.02]), blob(300, 37))
+    tgt = blob(300, 38)
+    options = LineMetricOptions(num_lines=2000, intersection=intersection)
+    reference = line_intersection_metric(
+        src[None], tgt[None], options=options, generator=torch.Generator().manual_seed(0)
+    ).value
+    leaf = (src * scale).requires_grad_(True)
+    scaled = line_intersection_metric(
+        leaf[None], (tgt * scale)[None], options=options, generator=torch.Generator().manual_seed(0)
+    ).value
+    torch.testing.assert_close(scaled, reference, rtol=1e-6, atol=1e-9)
+    scaled.sum().backward()
+    assert torch.isfinite(leaf.grad).all() and leaf.grad.abs().sum() > 0

@@ -210,7 +210,11 @@ class DCPCycleLoss(Loss):
 
 
 def reconstruction_chamfer(output: RegistrationOutput, loss_name: str) -> torch.Tensor:
-    """Sum over ``extras["reconstructions"]`` of the batch-mean squared Chamfer distance."""
+    """Sum over ``extras["reconstructions"]`` of the batch-mean squared Chamfer distance.
+
+    Half-precision clouds are passed in float32: :func:`chamfer_distance` returns the dtype of
+    its input, and squared distances of coordinates above ~256 exceed float16.
+    """
     pairs = _extra(output, "reconstructions", loss_name, "FMR (with a decoder)")
     if not pairs:
         raise ValueError(

@@ -16,18 +16,21 @@ and then serves pairs by slicing, shared copy-on-write with forked DataLoader wo
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import json
 import math
 import multiprocessing
 import os
+import secrets
 import time
 import warnings
 import zipfile
 import zlib
+from collections.abc import Iterator
 from datetime import datetime, timezone
 from pathlib import Path
-from typing import Any
+from typing import Any, BinaryIO
 
 import numpy as np
 import torch
@@ -70,6 +73,24 @@ def cache_path(dataset: PairDataset, cache_root: str | Path) -> Path:
     return Path(cache_root) / f"{dataset.registry_name}-{settings_key(dataset.settings())}"
 
 
+@contextlib.contextmanager
+def _atomic_temporary(path: Path) -> Iterator[BinaryIO]:
+    """An open binary file that replaces ``path`` atomically once the ``with`` block succeeds.
+
+    The temporary ``.<name>.<pid>.<random>.tmp`` beside ``path`` is unique to this writer, so
+    processes generating the same cache at once never share one; the last ``os.replace`` of
+    identical content wins, and a reader sees either no file or a complete one. The temporary
+    is removed when the block fails.
+    """
+    temporary = path.with_name(f".{path.name}.{os.getpid()}.{secrets.token_hex(4)}.tmp")
+    try:
+        with open(temporary, "wb") as handle:
+            yield handle
+        os.replace(temporary, path)
+    finally:
+        temporary.unlink(missing_ok=True)
+
+
 def write_shard(samples: list[PairSample], path: Path) -> None:
     """Write pairs to one compressed ``.npz`` shard (atomically, via a temporary file)."""
     arrays: dict[str, np.ndarray] = {}
@@ -87,9 +108,8 @@ def write_shard(samples: list[PairSample], path: Path) -> None:
         [s.gt_transform if s.gt_transform is not None else np.eye(4) for s in samples]
     ).astype(np.float32)
     arrays["meta"] = np.array([json.dumps(s.meta, default=str) for s in samples])
-    tmp = path.with_name(path.name + ".tmp.npz")
-    np.savez_compressed(tmp, **arrays)
-    os.replace(tmp, path)
+    with _atomic_temporary(path) as handle:
+        np.savez_compressed(handle, **arrays)
 
 
 class CachedPairs(Dataset):
@@ -331,9 +351,8 @@ def _generate(
         "elapsed_s": round(time.perf_counter() - began, 3),
         "created": datetime.now(timezone.utc).isoformat(timespec="seconds"),
     }
-    tmp = manifest_file.with_name(MANIFEST + ".tmp")
-    tmp.write_text(json.dumps(manifest, indent=2))
-    os.replace(tmp, manifest_file)
+    with _atomic_temporary(manifest_file) as handle:
+        handle.write(json.dumps(manifest, indent=2).encode())
 
 
 @DATASETS.register("cached")

@@ -13,6 +13,11 @@ Unsupervised regularisers (``needs_gt=False``), combined with the line loss in t
 * ``dcp_cycle``: the cycle-consistency term alone;
 * ``fmr_reconstruction``: FMR's encoder-decoder Chamfer loss alone.
 
+Inputs: the batch tensors a loss reads (``batch.src_xyz``, ``batch.gt_transform``) must be finite
+(a ``ValueError`` names the one that is not). Half-precision inputs (float16, bfloat16) are
+computed in float32 and give a float32 loss: squared distances overflow float16 from
+coordinates of about 256 on (65504 is its largest value), and so would the loss itself.
+
 Convention: ``T_tgt_src`` maps source to target (``tgt ≈ R @ src + t``) for predictions and
 ground truth alike. References: Yew & Lee, CVPR 2020 (RPM-Net); Wang & Solomon, ICCV 2019
 (DCP); Huang, Mei & Zhang, CVPR 2020 (FMR); reference-notes §1.1-1.3.
@@ -22,6 +27,7 @@ from __future__ import annotations
 
 import torch
 
+from linereg.checks import check_points, check_transform
 from linereg.se3 import inverse, transform_points
 from linereg.structures import LossOutput, PairBatch, RegistrationOutput
 
@@ -36,6 +42,24 @@ def _extra(output: RegistrationOutput, key: str, loss_name: str, producer: str) 
             f"{loss_name} needs output.extras[{key!r}], which {producer} returns; got extras {sorted(output.extras)}"
         )
     return output.extras[key]
+
+
+def _at_least_float32(value: torch.Tensor) -> torch.Tensor:
+    """``value`` in float32 when its dtype is narrower (float16, bfloat16), else unchanged."""
+    return value.float() if value.is_floating_point() and value.dtype.itemsize < 4 else value
+
+
+def _checked_batch(batch: PairBatch, *clouds: str) -> PairBatch:
+    """``batch`` after checking that ``gt_transform`` (when present) and the named clouds are finite.
+
+    Raises:
+        ValueError: naming the tensor (``batch.src_xyz``, ``batch.gt_transform``, ...) with NaN or Inf.
+    """
+    if batch.gt_transform is not None:
+        check_transform(batch.gt_transform, "batch.gt_transform")
+    for name in clouds:
+        check_points(getattr(batch, name), f"batch.{name}", batched=True)
+    return batch
 
 
 def _eye_like(T: torch.Tensor, size: int) -> torch.Tensor:
@@ -63,7 +87,7 @@ def _discounted_outlier_penalty(output: RegistrationOutput, discount: float, los
     if len(perms) != len(output.transforms):
         raise ValueError(f"{loss_name}: {len(perms)} perm_matrices for {len(output.transforms)} transforms")
     weights = iteration_weights(len(perms), discount)
-    return sum(w * outlier_penalty(perm) for w, perm in zip(weights, perms, strict=True))
+    return sum(w * outlier_penalty(_at_least_float32(perm)) for w, perm in zip(weights, perms, strict=True))
 
 
 @LOSSES.register("gt_rpmnet", needs_gt=True)
@@ -89,7 +113,7 @@ class RPMNetSupervisedLoss(Loss):
         self.discount = discount
 
     def compute(self, output: RegistrationOutput, batch: PairBatch) -> LossOutput:
-        src = batch.src_xyz
+        src = _at_least_float32(_checked_batch(batch, "src_xyz").src_xyz)
         expected = transform_points(batch.gt_transform.to(src.dtype), src)
         weights = iteration_weights(len(output.transforms), self.discount)
         registration = sum(
@@ -136,7 +160,7 @@ def cycle_consistency(T_tgt_src: torch.Tensor, T_src_tgt: torch.Tensor) -> torch
     Returns:
         Scalar tensor.
     """
-    round_trip = T_src_tgt @ T_tgt_src
+    round_trip = _at_least_float32(T_src_tgt) @ _at_least_float32(T_tgt_src)
     rotation = (round_trip[:, :3, :3] - _eye_like(round_trip, 3)).square().mean()
     return rotation + round_trip[:, :3, 3].square().mean()
 
@@ -160,8 +184,8 @@ class DCPSupervisedLoss(Loss):
         self.cycle_weight = cycle_weight
 
     def compute(self, output: RegistrationOutput, batch: PairBatch) -> LossOutput:
-        predicted = output.transform
-        gt = batch.gt_transform.to(predicted.dtype)
+        predicted = _at_least_float32(output.transform)
+        gt = _checked_batch(batch).gt_transform.to(predicted.dtype)
         relative = predicted[:, :3, :3].mT @ gt[:, :3, :3]
         terms = {
             "rotation": (relative - _eye_like(relative, 3)).square().mean(),
@@ -186,14 +210,21 @@ class DCPCycleLoss(Loss):
 
 
 def reconstruction_chamfer(output: RegistrationOutput, loss_name: str) -> torch.Tensor:
-    """Sum over ``extras["reconstructions"]`` of the batch-mean squared Chamfer distance."""
+    """Sum over ``extras["reconstructions"]`` of the batch-mean squared Chamfer distance.
+
+    Half-precision clouds are passed in float32: :func:`chamfer_distance` returns the dtype of
+    its input, and squared distances of coordinates above ~256 exceed float16.
+    """
     pairs = _extra(output, "reconstructions", loss_name, "FMR (with a decoder)")
     if not pairs:
         raise ValueError(
             f"{loss_name} needs reconstructions, but the model returned none (FMR built with "
             "decoder_points=None has no decoder)"
         )
-    return sum(chamfer_distance(inputs, decoded, squared=True).mean() for inputs, decoded in pairs)
+    return sum(
+        chamfer_distance(_at_least_float32(inputs), _at_least_float32(decoded), squared=True).mean()
+        for inputs, decoded in pairs
+    )
 
 
 @LOSSES.register("gt_fmr", needs_gt=True)
@@ -218,8 +249,8 @@ class FMRSupervisedLoss(Loss):
         self.reconstruction_weight = reconstruction_weight
 
     def compute(self, output: RegistrationOutput, batch: PairBatch) -> LossOutput:
-        predicted = output.transform
-        residual = predicted @ inverse(batch.gt_transform.to(predicted.dtype))
+        predicted = _at_least_float32(output.transform)
+        residual = predicted @ inverse(_checked_batch(batch, "src_xyz", "tgt_xyz").gt_transform.to(predicted.dtype))
         transform_error = (residual - _eye_like(residual, 4)).square().mean()
         terms = {"transform": self.transform_weight * transform_error}
         if self.reconstruction_weight:
@@ -235,5 +266,6 @@ class FMRReconstructionLoss(Loss):
     needs_gt = False
 
     def compute(self, output: RegistrationOutput, batch: PairBatch) -> LossOutput:
+        _checked_batch(batch, "src_xyz", "tgt_xyz")
         value = reconstruction_chamfer(output, "fmr_reconstruction")
         return LossOutput(total=value, terms={"reconstruction": value})

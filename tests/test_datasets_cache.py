@@ -3,13 +3,17 @@
 from __future__ import annotations
 
 import json
+import multiprocessing
+import sys
 
 import numpy as np
 import pytest
 from omegaconf import OmegaConf
 
 from datasets import DATASETS, build_dataset
+from datasets.base import PairDataset
 from datasets.cache import MANIFEST, CachedPairs, CorruptCacheError, cache_path, materialize
+from linereg.structures import PairSample
 
 CONFIG = {
     "name": "procedural",
@@ -148,3 +152,56 @@ def test_every_source_is_registered():
         "pairs_folder",
         "cached",
     }
+
+
+
+class _LockstepPairs(PairDataset):
+    """Large random pairs; every process waits for the others before each pair, so that
+    concurrent writers of the same cache write each shard at the same moment."""
+
+    registry_name = "lockstep"
+
+    def __init__(self, barrier) -> None:
+        self.barrier = barrier
+
+    def __len__(self) -> int:
+        return 6
+
+    def settings(self) -> dict:
+        return {"pairs": 6, "points": 50_000}
+
+    def make_pair(self, index: int) -> PairSample:
+        self.barrier.wait(timeout=60)
+        rng = np.random.default_rng(index)
+        xyz = rng.standard_normal((50_000, 3)).astype(np.float32)
+        return PairSample(src_xyz=xyz, tgt_xyz=xyz + 1, gt_transform=np.eye(4, dtype=np.float32), meta={"i": index})
+
+
+def _generate_in_lockstep(barrier, cache_root, errors) -> None:
+    """Child process: generate the lockstep cache (one pair per shard), report any error."""
+    try:
+        cached = materialize(_LockstepPairs(barrier), cache_root, workers=0, shard_size=1, progress=False)
+        np.testing.assert_array_equal(cached[5].tgt_xyz, _LockstepPairs(barrier).make_pair(5).tgt_xyz)
+    except Exception as error:  # reported to the test, which fails with it
+        errors.put(f"{type(error).__name__}: {error}")
+
+
+@pytest.mark.skipif(sys.platform != "linux", reason="forks the test process (Linux)")
+def test_processes_generating_the_same_cache_at_once_do_not_collide(tmp_path):
+    context = multiprocessing.get_context("fork")  # spawn would re-import torch in each child (slow)
+    barrier, errors = context.Barrier(2), context.Queue()
+    processes = [context.Process(target=_generate_in_lockstep, args=(barrier, tmp_path, errors)) for _ in range(2)]
+    for process in processes:
+        process.start()
+    for process in processes:
+        process.join(timeout=120)
+    reported = []
+    while not errors.empty():
+        reported.append(errors.get(timeout=1))
+    assert not reported, reported
+    assert [process.exitcode for process in processes] == [0, 0]
+    (folder,) = tmp_path.iterdir()
+    assert sorted(file.name for file in folder.iterdir()) == [MANIFEST] + [
+        f"shard_{i:07d}_{i + 1:07d}.npz" for i in range(6)
+    ]  # no temporaries left behind
+    assert len(CachedPairs(folder)) == 6

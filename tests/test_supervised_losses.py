@@ -152,3 +152,53 @@ def test_losses_are_differentiable_in_the_estimate():
         estimate.grad = None
         build_loss({"name": name})(_output(batch, estimate), batch).total.backward()
         assert estimate.grad is not None and estimate.grad.abs().sum() > 0
+
+
+def _scaled(batch: PairBatch, scale: float, dtype: torch.dtype) -> PairBatch:
+    """``batch`` with coordinates (and translations) multiplied by ``scale``, in ``dtype``."""
+    gt = batch.gt_transform.clone()
+    gt[:, :3, 3] *= scale
+    return PairBatch((batch.src_xyz * scale).to(dtype), (batch.tgt_xyz * scale).to(dtype), gt_transform=gt.to(dtype))
+
+
+def _large_output(batch: PairBatch) -> RegistrationOutput:
+    """An estimate 40 units off the ground truth and decodings 300 units off the inputs."""
+    estimate = _translated(batch.gt_transform.float(), (30.0, -20.0, 20.0)).to(batch.src_xyz.dtype)
+    output = _output(batch, estimate)
+    output.extras["reconstructions"] = [(cloud, cloud + 300.0) for cloud in (batch.src_xyz, batch.tgt_xyz)]
+    return output
+
+
+@pytest.mark.parametrize("name", [*SUPERVISED, *UNSUPERVISED])
+def test_half_precision_at_large_scale_is_finite_and_matches_float64(name):
+    # Coordinates of 1e3: squared distances (~1e5 and more) overflow float16 (largest value 65504).
+    reference, half = _scaled(_batch(), 1e3, torch.float64), _scaled(_batch(), 1e3, torch.float16)
+    loss = build_loss({"name": name})
+    expected = loss(_large_output(reference), reference).total
+    result = loss(_large_output(half), half).total
+    assert result.dtype == torch.float32 and torch.isfinite(result)
+    # float16 inputs hold 3 significant digits: the value agrees to that precision.
+    torch.testing.assert_close(result.double(), expected.double(), rtol=2e-2, atol=1e-3)
+
+
+@pytest.mark.parametrize("name", SUPERVISED)
+@pytest.mark.parametrize("bad", [float("nan"), float("inf")])
+def test_non_finite_ground_truth_is_named(name, bad):
+    batch = _batch()
+    output = _output(batch, batch.gt_transform)
+    batch.gt_transform[1, 0, 3] = bad
+    with pytest.raises(ValueError, match=r"batch\.gt_transform contains NaN or Inf"):
+        build_loss({"name": name})(output, batch)
+
+
+@pytest.mark.parametrize("name", ["gt_rpmnet", "gt_fmr", "fmr_reconstruction"])
+@pytest.mark.parametrize("field", ["src_xyz", "tgt_xyz"])
+def test_non_finite_coordinates_are_named(name, field):
+    batch = _batch()
+    output = _output(batch, batch.gt_transform)
+    getattr(batch, field)[0, 3, 1] = float("nan")
+    if name == "gt_rpmnet" and field == "tgt_xyz":  # RPM-Net's loss reads the source only
+        assert torch.isfinite(build_loss({"name": name})(output, batch).total)
+        return
+    with pytest.raises(ValueError, match=rf"batch\.{field} contains NaN or Inf coordinates"):
+        build_loss({"name": name})(output, batch)

@@ -53,10 +53,17 @@ def test_invalid_stages(stage, message):
 
 
 def test_empty_curriculum_is_refused():
-    with pytest.raises(ValueError, match="no stage"):
+    with pytest.raises(ValueError, match=r"no stage with epochs > 0; .*set trainer\.untrained=true"):
         Curriculum.from_config({"stages": {"only": {"epochs": 0}}})
     with pytest.raises(ValueError, match="only 'stages'"):
         Curriculum.from_config({"stages": {}, "epochs": 3})
+
+
+def test_empty_curriculum_is_accepted_for_an_untrained_run():
+    curriculum = Curriculum.from_config({"stages": {"a": {"epochs": 0}, "b": {"epochs": 0}}}, allow_empty=True)
+    assert curriculum.stages == [] and curriculum.total_epochs == 0
+    with pytest.raises(ValueError, match="outside the curriculum's 0 epochs"):
+        curriculum.locate(0)
 
 
 def test_subset_indices():

@@ -14,7 +14,7 @@ from linereg.io import write_point_cloud
 from linereg.structures import LossOutput
 from losses import Loss
 from train import loop
-from train.checkpoint import load_checkpoint
+from train.checkpoint import load_checkpoint, load_model
 from train.logging import read_scalars
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -72,9 +72,9 @@ def test_fast_dev_run_of_every_model(tmp_path, experiment):
     records = read_scalars(tmp_path)
     steps = [r for r in records if "train/loss" in r]
     assert len(steps) == 4
-    assert {"train/loss/alignment", "train/lr", "train/grad_norm", "train/stats/alignment/lines_hit_both"} <= set(
-        steps[0]
-    )
+    expected = {"train/loss/alignment", "train/lr", "train/grad_norm/total", "train/stats/alignment/lines_hit_both"}
+    terms = [tag.removeprefix("train/loss/") for tag in steps[0] if tag.startswith("train/loss/")]
+    assert expected | {f"train/grad_norm/{term}" for term in terms} <= set(steps[0])
     stage_changes = [r["curriculum/stage"] for r in records if "curriculum/stage" in r]
     assert stage_changes == [0, 1, 2]
 
@@ -206,3 +206,125 @@ def test_train_on_cuda_without_cuda_fails_before_any_data(tmp_path, monkeypatch)
     monkeypatch.setattr(loop, "build_split", lambda *args, **kwargs: pytest.fail("data was generated"))
     with pytest.raises(ValueError, match="CUDA is not available"):
         loop.train(tiny_config(tmp_path, "trainer.device=cuda"))
+
+
+class _ThreeTermLoss(Loss):
+    """Terms with known gradient ratios: ``double`` = 2 x ``single``, ``constant`` independent of the model."""
+
+    def compute(self, output, batch):
+        single = (output.transform[:, :3, 3] ** 2).sum(dim=1).mean()
+        terms = {"single": single, "double": 2 * single, "constant": single.new_tensor(1.0)}
+        return LossOutput(total=sum(terms.values()), terms=terms)
+
+
+def _toy_run(folder: Path, *overrides: str) -> dict:
+    cfg = tiny_config(folder, "model.num_neighbors=8", "trainer.grad_clip_norm=null", *overrides)
+    return loop.train(cfg)
+
+
+def test_term_gradient_norms_are_logged_on_logging_steps_without_changing_training(tmp_path, monkeypatch):
+    monkeypatch.setattr(loop, "build_loss_from_config", lambda config: _ThreeTermLoss())
+    logged = _toy_run(tmp_path / "logged", "trainer.log_every=2")
+    records = [r for r in read_scalars(tmp_path / "logged") if "train/loss" in r]
+    assert [r["step"] for r in records] == [2, 4]
+    for record in records:
+        single, double = record["train/grad_norm/single"], record["train/grad_norm/double"]
+        assert single > 0 and double == pytest.approx(2 * single, rel=1e-5)
+        assert record["train/grad_norm/constant"] == 0.0
+        # The total's gradient is 3 x that of ``single`` (the constant adds none), before clipping.
+        assert record["train/grad_norm/total"] == pytest.approx(3 * single, rel=1e-5)
+    # The extra backward passes leave the optimisation untouched.
+    plain = _toy_run(tmp_path / "plain", "trainer.log_every=2", "trainer.log_term_grad_norms=false")
+    assert not any("train/grad_norm/single" in r for r in read_scalars(tmp_path / "plain"))
+    for name, value in load_checkpoint(logged["last_checkpoint"])["model"].items():
+        torch.testing.assert_close(value, load_checkpoint(plain["last_checkpoint"])["model"][name], rtol=0, atol=0)
+
+
+def test_a_loss_term_named_total_is_refused_for_gradient_norms(tmp_path, monkeypatch):
+    class TotalTerm(Loss):
+        def compute(self, output, batch):
+            value = (output.transform[:, :3, 3] ** 2).sum()
+            return LossOutput(total=value, terms={"total": value})
+
+    monkeypatch.setattr(loop, "build_loss_from_config", lambda config: TotalTerm())
+    with pytest.raises(ValueError, match=r"named 'total'.*log_term_grad_norms=false"):
+        _toy_run(tmp_path)
+
+
+def test_untrained_run_evaluates_the_initial_weights_like_a_trained_run(tmp_path):
+    common = ["model.num_neighbors=8", "loss.num_lines=300"]
+    trained = loop.train(tiny_config(tmp_path / "trained", *common))["metrics"]
+    result = loop.train(tiny_config(tmp_path / "untrained", *common, "trainer.untrained=true"))
+    run = tmp_path / "untrained"
+    content = json.loads((run / "metrics.json").read_text())
+    assert content["untrained"] is True
+    assert content["evaluated_checkpoint"] == {
+        "file": "last.pt",
+        "path": str(run / "checkpoints" / "last.pt"),
+        "epoch": 0,
+    }
+    state = load_checkpoint(run / "checkpoints" / "last.pt")
+    assert state["progress"] == {"epoch": 0, "global_step": 0, "stage": None, "stage_name": None}
+    assert not (run / "checkpoints" / "best.pt").exists()
+    assert not any("train/loss" in record for record in read_scalars(run))
+    metrics = result["metrics"]
+    # Same seed, same initial weights: the trained run validated them before its first step.
+    assert metrics["val/err_r_deg_mean"] == pytest.approx(trained["val_initial/err_r_deg_mean"], rel=1e-6)
+    for key in ("test/err_r_deg_mean", "test/identity/err_r_deg_mean"):
+        assert np.isfinite(content["metrics"][key]), key
+    assert json.loads((run / "evaluation" / "metrics.json").read_text())["checkpoint"].endswith("last.pt")
+    model, _ = load_model(run)  # what python -m train.evaluate reads
+    for name, value in model.state_dict().items():
+        torch.testing.assert_close(value, state["model"][name])
+
+
+def test_an_all_zero_curriculum_needs_the_untrained_switch(tmp_path):
+    zero = [f"curriculum.stages.{stage}.epochs=0" for stage in ("easy", "subset", "full")]
+    with pytest.raises(ValueError, match=r"no stage with epochs > 0.*trainer\.untrained=true"):
+        loop.train(tiny_config(tmp_path / "refused", "model.num_neighbors=8", *zero))
+    result = loop.train(
+        tiny_config(
+            tmp_path / "run",
+            "model.num_neighbors=8",
+            "loss.num_lines=300",
+            *zero,
+            "trainer.untrained=true",
+            "evaluate_split=null",
+        )
+    )
+    assert json.loads((tmp_path / "run" / "metrics.json").read_text())["evaluated_checkpoint"]["epoch"] == 0
+    assert "val/err_r_deg_mean" in result["metrics"]
+
+
+@pytest.mark.parametrize("choice", ["best", "last"])
+def test_evaluate_checkpoint_chooses_the_evaluated_file(tmp_path, choice):
+    cfg = tiny_config(tmp_path, "model.num_neighbors=8", "loss.num_lines=300", f"trainer.evaluate_checkpoint={choice}")
+    result = loop.train(cfg)
+    content = json.loads((tmp_path / "metrics.json").read_text())
+    file = tmp_path / "checkpoints" / f"{choice}.pt"
+    state = load_checkpoint(file)
+    assert content["evaluated_checkpoint"] == {
+        "file": file.name,
+        "path": str(file),
+        "epoch": state["progress"]["epoch"],
+    }
+    assert result["evaluated_checkpoint"] == str(file)
+    if choice == "last":
+        assert state["progress"]["epoch"] == 3
+    else:
+        assert state["progress"]["epoch"] == content["best"]["epoch"] == content["metrics"]["best_epoch"]
+    assert content["metrics"]["val/err_r_deg_mean"] == pytest.approx(state["metrics"]["val/err_r_deg_mean"])
+    assert json.loads((tmp_path / "evaluation" / "metrics.json").read_text())["checkpoint"] == str(file)
+
+
+@pytest.mark.parametrize(
+    ("key", "value", "message"),
+    [
+        ("evaluate_checkpoint", "final", "must be 'best' or 'last'"),
+        ("untrained", "yes", "untrained must be true or false"),
+        ("log_term_grad_norms", 1, "log_term_grad_norms must be true or false"),
+    ],
+)
+def test_invalid_trainer_switches_are_named(key, value, message):
+    with pytest.raises(ValueError, match=rf"trainer\.{key}.*{message}|{message}"):
+        loop.TrainerSettings.from_config({key: value})

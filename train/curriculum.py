@@ -101,19 +101,24 @@ class Curriculum:
 
     Args:
         stages: the stages (those with 0 epochs are dropped).
+        allow_empty: accept a curriculum without any epoch (an untrained control run,
+            ``trainer.untrained=true``); otherwise that is an error.
     """
 
-    def __init__(self, stages: Sequence[Stage]) -> None:
+    def __init__(self, stages: Sequence[Stage], *, allow_empty: bool = False) -> None:
         self.stages = [stage for stage in stages if stage.epochs > 0]
-        if not self.stages:
-            raise ValueError("the curriculum has no stage with epochs > 0")
+        if not self.stages and not allow_empty:
+            raise ValueError(
+                "the curriculum has no stage with epochs > 0; to evaluate the initial (untrained) model on purpose, "
+                "set trainer.untrained=true"
+            )
         names = [stage.name for stage in self.stages]
         if len(set(names)) != len(names):
             raise ValueError(f"curriculum stage names must be unique, got {names}")
 
     @classmethod
-    def from_config(cls, config: Mapping[str, Any]) -> Curriculum:
-        """Build from ``{stages: {name: {epochs, subset, variant, lr, lr_scale}}}``."""
+    def from_config(cls, config: Mapping[str, Any], *, allow_empty: bool = False) -> Curriculum:
+        """Build from ``{stages: {name: {epochs, subset, variant, lr, lr_scale}}}`` (``allow_empty``: see the class)."""
         config = plain(config)
         if set(config) != {"stages"}:
             raise ValueError(f"the curriculum config takes only 'stages', got keys {sorted(config)}")
@@ -127,7 +132,7 @@ class Curriculum:
             if "epochs" not in stage:
                 raise ValueError(f"curriculum stage {name!r} needs 'epochs'")
             stages.append(Stage(name=str(name), **stage))
-        return cls(stages)
+        return cls(stages, allow_empty=allow_empty)
 
     @property
     def total_epochs(self) -> int:

@@ -6,9 +6,15 @@ One run::
         training split (subset / variant of the stage), learning rate, scheduler
         for each epoch: steps (AMP, gradient clipping, non-finite guard), validation every
         ``trainer.val_every`` epochs, ``last.pt`` (+ ``best.pt`` when the monitored metric
-        improves), TensorBoard
-    -> evaluation of ``best.pt`` on ``evaluate_split`` (printed table, ``evaluation/``)
-    -> ``metrics.json`` in the run folder
+        improves), TensorBoard (every ``trainer.log_every`` steps: losses, their terms, the
+        gradient norm of each term and the total, line statistics)
+    -> evaluation of ``best.pt`` (``trainer.evaluate_checkpoint=last``: ``last.pt``) on
+       ``evaluate_split`` (printed table, ``evaluation/``)
+    -> ``metrics.json`` in the run folder (``evaluated_checkpoint``: which file, which epoch)
+
+``trainer.untrained=true`` runs no epoch (whatever the curriculum; an all-zero curriculum is an
+error otherwise): the initial weights are validated, written as ``last.pt`` and evaluated
+exactly like a trained run's, the control cell "untrained network" of a results table.
 
 Checkpoints are written at the end of every epoch, atomically, so an interrupted run (Ctrl-C,
 ``kill``) loses at most the epoch in progress; ``resume=true`` continues exactly: same data
@@ -139,6 +145,9 @@ class TrainerSettings:
     detect_anomaly: bool = False
     ddp_find_unused_parameters: bool = False
     alphas: tuple[float, ...] = (0.01, 0.02, 0.05, 0.1)
+    untrained: bool = False
+    evaluate_checkpoint: str = "best"
+    log_term_grad_norms: bool = True
 
     @classmethod
     def from_config(cls, config: Mapping[str, Any]) -> TrainerSettings:
@@ -153,6 +162,13 @@ class TrainerSettings:
         settings = cls(**config)
         if settings.monitor_mode not in ("min", "max"):
             raise ValueError(f"trainer.monitor_mode must be 'min' or 'max', got {settings.monitor_mode!r}")
+        if settings.evaluate_checkpoint not in ("best", "last"):
+            raise ValueError(
+                f"trainer.evaluate_checkpoint must be 'best' or 'last', got {settings.evaluate_checkpoint!r}"
+            )
+        for name in ("untrained", "log_term_grad_norms"):
+            if not isinstance(getattr(settings, name), bool):
+                raise ValueError(f"trainer.{name} must be true or false, got {getattr(settings, name)!r}")
         for name in ("batch_size", "eval_batch_size", "val_every", "log_every", "max_bad_steps"):
             if getattr(settings, name) < 1:
                 raise ValueError(f"trainer.{name} must be >= 1, got {getattr(settings, name)}")
@@ -215,7 +231,7 @@ class Trainer:
         self.seed = int(config["seed"])
         self.model = build_model(config["model"]).to(self.device)
         self.loss = loss.to(self.device)
-        self.curriculum = Curriculum.from_config(config["curriculum"])
+        self.curriculum = Curriculum.from_config(config["curriculum"], allow_empty=self.settings.untrained)
         self.optimizer = build_optimizer(self.model.parameters(), config["optimizer"])
         self.base_lr = float(config["optimizer"]["lr"])
         self.scheduler = None
@@ -236,8 +252,9 @@ class Trainer:
 
     # ----------------------------------------------------------------------------- state
     def state_dict(self, metrics: Mapping[str, float]) -> dict[str, Any]:
-        """Everything needed to continue exactly (see :mod:`train.checkpoint`)."""
-        stage = self.curriculum.stages[self.stage_index]
+        """Everything needed to continue exactly (see :mod:`train.checkpoint`); before the first
+        stage (an untrained run) ``progress.stage`` and ``progress.stage_name`` are ``None``."""
+        stage = None if self.stage_index is None else self.curriculum.stages[self.stage_index]
         return {
             "config": self.config,
             "model": distributed.unwrap(self.model).state_dict(),
@@ -248,7 +265,7 @@ class Trainer:
                 "epoch": self.epoch,
                 "global_step": self.global_step,
                 "stage": self.stage_index,
-                "stage_name": stage.name,
+                "stage_name": None if stage is None else stage.name,
             },
             "best": dict(self.best),
             "rng": rng_state(),
@@ -266,13 +283,14 @@ class Trainer:
         self.global_step = int(progress["global_step"])
         self.best = dict(state["best"])
         self.monitor = self.best.get("metric") or self.monitor
-        self.stage_index = int(progress["stage"])
-        stage = self.curriculum.stages[self.stage_index]
-        if stage.name != progress["stage_name"]:
-            raise ValueError(
-                f"checkpoint stage {progress['stage_name']!r} is not stage {progress['stage']} of the curriculum "
-                f"({stage.name!r})"
-            )
+        if progress["stage"] is not None:  # None: saved before the first stage (an untrained run)
+            self.stage_index = int(progress["stage"])
+            stage = self.curriculum.stages[self.stage_index]
+            if stage.name != progress["stage_name"]:
+                raise ValueError(
+                    f"checkpoint stage {progress['stage_name']!r} is not stage {progress['stage']} of the curriculum "
+                    f"({stage.name!r})"
+                )
         if self.epoch < self.curriculum.total_epochs:
             index, _ = self.curriculum.locate(self.epoch)
             self._enter_stage(index, resumed=True)
@@ -365,6 +383,8 @@ class Trainer:
                 self._report_bad_batch(batch, output, loss_output) if not finite else "non-finite loss on another rank"
             )
             return self._skip_step(message)
+        logging_step = (self.global_step + 1) % self.settings.log_every == 0
+        term_norms = self._term_grad_norms(loss_output) if logging_step and self.settings.log_term_grad_norms else {}
         self.optimizer.zero_grad(set_to_none=True)
         self.scaler.scale(loss_output.total).backward()
         self.scaler.unscale_(self.optimizer)
@@ -380,9 +400,34 @@ class Trainer:
         values = {"loss": float(loss_output.total.detach())}
         values.update({f"loss/{name}": float(value.detach()) for name, value in loss_output.terms.items()})
         values.update({f"stats/{name}": float(value) for name, value in loss_output.stats.items()})
-        values["grad_norm"] = grad_norm
+        values["grad_norm/total"] = grad_norm
+        values.update(term_norms)
         values["lr"] = self.optimizer.param_groups[0]["lr"]
         return values
+
+    def _term_grad_norms(self, loss_output: LossOutput) -> dict[str, float]:
+        """``{"grad_norm/<term>": L2 norm of d term / d parameters}`` for each (weighted) loss term.
+
+        One extra backward pass per term through the retained graph (``torch.autograd.grad``,
+        leaving ``.grad`` alone), on this process's batch; a term that does not depend on the
+        parameters has norm 0. Under float16 AMP the term is scaled like the loss and the
+        norm unscaled.
+        """
+        if "total" in loss_output.terms:
+            raise ValueError(
+                "a loss term is named 'total', which clashes with train/grad_norm/total; rename the term in the "
+                "loss config (or set trainer.log_term_grad_norms=false)"
+            )
+        parameters = [p for p in self.model.parameters() if p.requires_grad]
+        scale = self.scaler.get_scale() if self.scaler.is_enabled() else 1.0
+        norms = {}
+        for name, term in loss_output.terms.items():
+            grads = []
+            if term.requires_grad:
+                grads = torch.autograd.grad(term * scale, parameters, retain_graph=True, allow_unused=True)
+            squares = [grad.float().square().sum() for grad in grads if grad is not None]
+            norms[f"grad_norm/{name}"] = float(torch.stack(squares).sum().sqrt()) / scale if squares else 0.0
+        return norms
 
     def _skip_step(self, message: str) -> None:
         """Skip this step, warn, and give up after ``max_bad_steps`` in a row."""
@@ -413,7 +458,8 @@ class Trainer:
         )
         self.ddp_model.train()
         totals: dict[str, float] = defaultdict(float)
-        steps = 0
+        counts: dict[str, int] = defaultdict(int)  # per key: term gradient norms come on logging steps only
+        steps = done = 0
         total_steps = len(loader)
         if self.settings.max_steps_per_epoch is not None:
             total_steps = min(total_steps, self.settings.max_steps_per_epoch)
@@ -435,19 +481,19 @@ class Trainer:
                     continue
                 for name, value in values.items():
                     totals[name] += value
-                totals["_count"] += 1
+                    counts[name] += 1
+                done += 1
                 bar.set_postfix(loss=f"{values['loss']:.4g}")
                 if self.logger is not None and self.global_step % self.settings.log_every == 0:
                     self.logger.scalars(values, self.global_step, prefix="train/")
-        count = totals.pop("_count", 0)
-        if steps and not count:
+        if steps and not done:
             raise FloatingPointError(
                 f"every training step of epoch {self.epoch + 1} ({steps} of {steps}) was skipped for non-finite "
                 f"values (see the warnings above); the model did not train. Lower optimizer.lr (now "
                 f"{self.optimizer.param_groups[0]['lr']:g}) or check the data; the checkpoints of earlier epochs "
                 f"are kept in {self.run_dir / CHECKPOINT_DIR}"
             )
-        means = {name: value / count for name, value in totals.items()} if count else {}
+        means = {name: value / counts[name] for name, value in totals.items()}
         means["epoch_seconds"] = time.perf_counter() - began
         return means
 
@@ -539,6 +585,9 @@ class Trainer:
     def _run_epochs(self, checkpoints: Path) -> None:
         """Train, validate and checkpoint every remaining epoch."""
         self.val_data = build_split(self.config["dataset"], "val", progress=self.settings.progress and self.ctx.is_main)
+        if self.settings.untrained:
+            self._save_initial_model(checkpoints)
+            return
         if self.stage_index is None:
             if self.settings.val_before_training:
                 initial = self._validate()
@@ -581,18 +630,39 @@ class Trainer:
             self.logger.flush()
             distributed.barrier(self.ctx)
 
+    def _save_initial_model(self, checkpoints: Path) -> None:
+        """``trainer.untrained``: validate the initial model and write it as ``last.pt`` (no epoch runs)."""
+        log.info(
+            "trainer.untrained=true: evaluating the initial model; the curriculum's %d epoch(s) are not run",
+            self.curriculum.total_epochs,
+        )
+        metrics = self._validate()
+        if self.ctx.is_main:
+            save_checkpoint(self.state_dict(metrics), checkpoints / LAST)
+        self.logger.flush()
+        distributed.barrier(self.ctx)
+
+    def _evaluated_file(self, checkpoints: Path) -> Path:
+        """The checkpoint the final evaluation reads: ``last.pt`` for ``trainer.evaluate_checkpoint=last``
+        and untrained runs, else ``best.pt`` (``last.pt`` when none was written)."""
+        if self.settings.untrained or self.settings.evaluate_checkpoint == "last":
+            return checkpoints / LAST
+        return checkpoints / BEST if (checkpoints / BEST).is_file() else checkpoints / LAST
+
     def _finish(self, checkpoints: Path) -> dict[str, Any]:
-        """Evaluate the best checkpoint on the evaluation split; write ``metrics.json``."""
-        best_file = checkpoints / BEST if (checkpoints / BEST).is_file() else checkpoints / LAST
+        """Evaluate the chosen checkpoint (:meth:`_evaluated_file`) on the evaluation split; write ``metrics.json``."""
+        evaluated_file = self._evaluated_file(checkpoints)
         results: dict[str, Any] = {
             "metrics": {},
-            "best_checkpoint": str(best_file),
+            "best_checkpoint": str(checkpoints / BEST if (checkpoints / BEST).is_file() else checkpoints / LAST),
+            "evaluated_checkpoint": str(evaluated_file),
             "last_checkpoint": str(checkpoints / LAST),
             "output_dir": str(self.run_dir),
             "model": distributed.unwrap(self.model),
         }
-        untrained = self.ctx.is_main and self.val_data is not None and self.best["value"] is None
-        if distributed.broadcast_object(untrained, self.ctx):
+        trained = not self.settings.untrained
+        diverged = self.ctx.is_main and trained and self.val_data is not None and self.best["value"] is None
+        if distributed.broadcast_object(diverged, self.ctx):
             raise FloatingPointError(
                 f"no validation gave a finite {self.monitor}: the model is not usable (no best.pt was written; "
                 f"{checkpoints / LAST} holds the last state). Lower optimizer.lr or check the data"
@@ -600,35 +670,48 @@ class Trainer:
         if not self.ctx.is_main:
             distributed.barrier(self.ctx)
             return results
-        best_state = load_checkpoint(best_file, map_location=self.device)
-        metrics = {k: v for k, v in best_state["metrics"].items() if k.startswith("val/")}
+        evaluated_state = load_checkpoint(evaluated_file, map_location=self.device)
+        evaluated_epoch = int(evaluated_state["progress"]["epoch"])
+        metrics = {k: v for k, v in evaluated_state["metrics"].items() if k.startswith("val/")}
         split = self.config.get("evaluate_split")
         dataset = build_split(self.config["dataset"], split, progress=self.settings.progress) if split else None
         if dataset is not None:
             model = distributed.unwrap(self.model)
-            model.load_state_dict(best_state["model"])
+            model.load_state_dict(evaluated_state["model"])
             evaluation = self._evaluate(
                 dataset, keep=int(self.config["logger"].get("num_figures", 0)), description=split
             )
-            name = f"{self.config['model']['name']} (best.pt, epoch {best_state['progress']['epoch']})"
+            name = f"{self.config['model']['name']} ({evaluated_file.name}, epoch {evaluated_epoch})"
             write_evaluation(
                 evaluation,
                 self.run_dir / "evaluation",
                 name=name,
                 alphas=self.settings.alphas,
-                info={"checkpoint": str(best_file), "dataset": self.config["dataset"].get("name"), "split": split},
+                info={"checkpoint": str(evaluated_file), "dataset": self.config["dataset"].get("name"), "split": split},
             )
             metrics.update({f"{split}/{k}": v for k, v in evaluation.metrics(self.settings.alphas).items()})
             if evaluation.labelled:
                 identity = evaluation.metrics(self.settings.alphas, identity=True)
                 metrics.update({f"{split}/identity/{k}": v for k, v in identity.items()})
             self.logger.scalars({k: v for k, v in metrics.items() if k.startswith(f"{split}/")}, self.global_step)
-            print(f"\nEvaluation of {best_file} on the {split!r} split of {self.config['dataset'].get('name')!r}:\n")
+            dataset_name = self.config["dataset"].get("name")
+            print(f"\nEvaluation of {evaluated_file} on the {split!r} split of {dataset_name!r}:\n")
             print(report(name, evaluation, self.settings.alphas))
         metrics.update(self.initial_metrics)
         metrics["best_epoch"] = self.best["epoch"]
         optimized = self.config.get("optimized_metric")
-        content = {"metrics": metrics, "optimized_metric": optimized, "best": self.best, "run_dir": str(self.run_dir)}
+        content = {
+            "metrics": metrics,
+            "optimized_metric": optimized,
+            "best": self.best,
+            "evaluated_checkpoint": {
+                "file": evaluated_file.name,
+                "path": str(evaluated_file),
+                "epoch": evaluated_epoch,
+            },
+            "untrained": self.settings.untrained,
+            "run_dir": str(self.run_dir),
+        }
         (self.run_dir / "metrics.json").write_text(_json(content))
         log.info("run folder: %s", self.run_dir)
         distributed.barrier(self.ctx)
@@ -713,9 +796,11 @@ def train(cfg: DictConfig) -> dict[str, Any]:
         cfg: the composed config (``paths.output_dir`` is the run folder).
 
     Returns:
-        ``{"metrics": {...}, "best_checkpoint", "last_checkpoint", "output_dir", "model"}``;
-        metrics hold the best checkpoint's validation metrics (``val/...``), its evaluation on
-        ``evaluate_split`` (``test/...``, ``test/identity/...``) and ``best_epoch``.
+        ``{"metrics": {...}, "best_checkpoint", "evaluated_checkpoint", "last_checkpoint",
+        "output_dir", "model"}``; metrics hold the evaluated checkpoint's validation metrics
+        (``val/...``; ``best.pt`` unless ``trainer.evaluate_checkpoint=last`` or
+        ``trainer.untrained=true``), its evaluation on ``evaluate_split`` (``test/...``,
+        ``test/identity/...``) and ``best_epoch``.
     """
     ctx = distributed.setup(cfg.trainer.device)
     try:

@@ -291,11 +291,11 @@ def _neighbors(
     if backend == "torch":
         idx, dist = line_torch.masked_knn(cloud, valid, k)
         return valid, idx, dist
-    idx = torch.zeros(batch, n, k, dtype=torch.int64)
-    dist = torch.zeros(batch, n, k, dtype=torch.float64)
     if bool((lengths == n).all()):
         found = knn(cloud, cloud, k, exclude_self=True)
         return valid, found.idx, found.dists
+    idx = torch.zeros(batch, n, k, dtype=torch.int64)
+    dist = torch.zeros(batch, n, k, dtype=torch.float64)
     for b, length in enumerate(lengths.tolist()):
         found = knn(cloud[b, :length], cloud[b, :length], k, exclude_self=True)
         idx[b, :length], dist[b, :length] = found.idx, found.dists

@@ -31,9 +31,10 @@ from scipy.spatial import cKDTree
 from tqdm.auto import tqdm
 
 from linereg.checks import check_points, check_transform
+from linereg.metrics import rotation_error_deg
 from linereg.pointcloud import farthest_point_sampling, knn
 from linereg.procrustes import weighted_procrustes
-from linereg.se3 import rotation_angle, se3_exp, transform_points
+from linereg.se3 import se3_exp, transform_points
 from losses import build_loss
 from losses.base import AlignmentLoss
 from losses.chamfer import welsch
@@ -346,12 +347,6 @@ class IRLSRegistration(_Solver):
             if self.monitor is not None:
                 shown = self.monitor(step + 1, unscale(pose.numpy()), curve[-1])
         return pose, {"loss_curve": curve, **shown}
-
-
-def _rotation_gap_deg(poses: torch.Tensor, reference: torch.Tensor) -> torch.Tensor:
-    """``(K,)`` angles in degrees between the rotations of ``poses (K, 4, 4)`` and ``reference (4, 4)``."""
-    relative = poses[:, :3, :3] @ reference[:3, :3].transpose(-1, -2)
-    return torch.rad2deg(rotation_angle(relative))
 
 
 class NearestTarget:
@@ -728,7 +723,7 @@ class RobustRegistration(_Solver):
     def _doubt(self, poses: torch.Tensor, costs: torch.Tensor) -> tuple[bool, float]:
         """``(doubtful, confidence)`` of the lowest-cost candidate (see :class:`RobustOptions`)."""
         best = int(costs.argmin())
-        rivals = _rotation_gap_deg(poses, poses[best]) > self.options.distinct_deg
+        rivals = rotation_error_deg(poses[:, :3, :3], poses[best, :3, :3]) > self.options.distinct_deg
         if not bool(rivals.any()):
             return bool(costs[best] > self.options.max_cost), 1.0
         rival = float(costs[rivals].min())

@@ -3,7 +3,7 @@
 Every dataset yields :class:`linereg.structures.PairSample` (numpy): float32 source/target
 clouds, normals (computed when the data has none), ``gt_transform`` mapping source to target
 (``tgt ≈ R @ src + t``) or ``None`` for unlabeled data, and metadata. Pairs are deterministic
-given ``(seed, index)``. :func:`datasets.collate.collate_pairs` batches them into a
+given ``(seed, index)``. :func:`linereg.datasets.collate.collate_pairs` batches them into a
 :class:`~linereg.structures.PairBatch`.
 
 Registered datasets (``DATASETS.names()``): ``procedural`` (default, no files), ``mesh_folder``,
@@ -22,10 +22,7 @@ import inspect
 from collections.abc import Mapping
 from typing import Any
 
-from omegaconf import DictConfig, OmegaConf
-from torch.utils.data import Dataset
-
-from datasets import (  # noqa: F401  (importing registers the builders)
+from linereg.datasets import (  # noqa: F401  (importing registers the builders)
     cache,
     combine,
     pairs_folder,
@@ -34,9 +31,11 @@ from datasets import (  # noqa: F401  (importing registers the builders)
     shape_sources,
     threedmatch,
 )
-from datasets.base import DATASETS, PairDataset, item_rng
-from datasets.cache import CachedPairs, materialize
-from datasets.collate import collate_pairs
+from linereg.datasets.base import DATASETS, PairDataset, item_rng
+from linereg.datasets.cache import CachedPairs, materialize
+from linereg.datasets.collate import collate_pairs
+from omegaconf import DictConfig, OmegaConf
+from torch.utils.data import Dataset
 
 __all__ = [
     "DATASETS",

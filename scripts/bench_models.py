@@ -39,12 +39,13 @@ import torch.nn.functional as F
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-import losses.supervised  # noqa: F401  (registers the supervised losses)
+import linereg.losses.supervised  # noqa: F401  (registers the supervised losses)
+from linereg.losses.base import build_loss
+from linereg.models import build_model, list_models
+
 from linereg.random_poses import random_transform_paper
 from linereg.se3 import transform_normals, transform_points
 from linereg.structures import PairBatch
-from losses.base import build_loss
-from models import build_model, list_models
 
 SUPERVISED_LOSS = {"dcp_v1": "gt_dcp", "dcp_v2": "gt_dcp", "rpmnet": "gt_rpmnet", "fmr": "gt_fmr"}
 PAGE_MB = os.sysconf("SC_PAGE_SIZE") / 2**20

@@ -3,7 +3,7 @@
     python scripts/bench_register.py                 # 5 partial-vs-whole airplane pairs, 1024 vs 2048 points
     python scripts/bench_register.py --pairs 10 --commands 3 --json
 
-Pairs: :mod:`datasets.partial_vs_whole` on the ModelNet40 airplanes of the shared data (source a
+Pairs: :mod:`linereg.datasets.partial_vs_whole` on the ModelNet40 airplanes of the shared data (source a
 hidden-point-removal view of 1024 points, target 2048 points of the whole shape). In one run,
 first on the machine as it is ("quiet"), then again while this script keeps one extra
 CPU-bound process spinning ("busy core"), it measures
@@ -32,16 +32,16 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
+import linereg.train.baselines  # noqa: E402  (registers icp_point)
+import linereg.train.solvers  # noqa: E402,F401  (registers robust)
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
+from linereg.datasets.partial_vs_whole import partial_vs_whole_pairs  # noqa: E402
+from linereg.train.methods import build_method  # noqa: E402
 
-import train.baselines  # noqa: E402  (registers icp_point)
-import train.solvers  # noqa: E402,F401  (registers robust)
-from datasets.partial_vs_whole import partial_vs_whole_pairs  # noqa: E402
 from linereg.io import write_point_cloud  # noqa: E402
 from linereg.metrics import rotation_error_deg  # noqa: E402
 from linereg.paths import shared_data_dir  # noqa: E402
-from train.methods import build_method  # noqa: E402
 
 
 def _spin() -> None:

@@ -6,12 +6,12 @@ import numpy as np
 import pytest
 import torch
 import trimesh
+from linereg.datasets.procedural import procedural_shape
+from linereg.train.baselines import FRICP_VARIANTS, diameter
+from linereg.train.methods import METHODS, build_method
 
-from datasets.procedural import procedural_shape
 from linereg.metrics import registration_errors
 from linereg.se3 import rt_to_matrix, so3_exp
-from train.baselines import FRICP_VARIANTS, diameter
-from train.methods import METHODS, build_method
 
 BASELINES = ("icp_point", "icp_plane", "fgr", "fricp")
 

@@ -12,15 +12,8 @@ import numpy as np
 import pytest
 import torch
 import trimesh
-from scipy.spatial import cKDTree
-
-from datasets.procedural import procedural_shape
-from linereg.io import write_point_cloud, write_transform
-from linereg.metrics import ERROR_KEYS
-from linereg.paths import REPO_ROOT
-from linereg.random_poses import random_transform_paper
-from linereg.structures import PairSample
-from train.benchmark import (
+from linereg.datasets.procedural import procedural_shape
+from linereg.train.benchmark import (
     airplane_pairs,
     benchmark,
     build_methods,
@@ -33,7 +26,14 @@ from train.benchmark import (
     threedmatch_pairs,
     write_results,
 )
-from train.methods import MethodResult
+from linereg.train.methods import MethodResult
+from scipy.spatial import cKDTree
+
+from linereg.io import write_point_cloud, write_transform
+from linereg.metrics import ERROR_KEYS
+from linereg.paths import REPO_ROOT
+from linereg.random_poses import random_transform_paper
+from linereg.structures import PairSample
 
 RECORD_KEYS = {"pair", "method", "seconds", "diameter", "transform", "gt_transform", "meta", "info", *ERROR_KEYS}
 
@@ -284,7 +284,7 @@ def test_run_benchmark_resumes_from_its_journal(tmp_path):
 
 
 def test_partial_vs_whole_pairs_from_meshes_and_point_files(tmp_path):
-    from datasets.partial_vs_whole import PartialVsWholeSettings, partial_vs_whole_pairs
+    from linereg.datasets.partial_vs_whole import PartialVsWholeSettings, partial_vs_whole_pairs
 
     procedural_shape(np.random.default_rng(3)).export(tmp_path / "shape.off")
     points, _ = trimesh.sample.sample_surface(procedural_shape(np.random.default_rng(4)), 5000, seed=4)
@@ -312,7 +312,7 @@ def test_partial_vs_whole_pairs_from_meshes_and_point_files(tmp_path):
 @pytest.mark.shared_data
 def test_partial_vs_whole_source_on_the_shared_airplanes(shared_data):
     config = {"name": "partial_vs_whole", "root": "modelnet40_normal_resampled", "patterns": ["airplane/*.txt"]}
-    from train.benchmark import build_pairs
+    from linereg.train.benchmark import build_pairs
 
     pairs = build_pairs(config, pairs=2, seed=0)
     assert [pair.src_xyz.shape for pair in pairs] == [(1024, 3)] * 2

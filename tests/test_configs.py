@@ -9,12 +9,11 @@ import pytest
 import torch
 from hydra import compose, initialize_config_dir
 from hydra.errors import ConfigCompositionException
+from linereg.models import build_model
+from linereg.train.checkpoint import build_loss_from_config
+from linereg.train.curriculum import Curriculum, dataset_config
+from linereg.train.loop import TrainerSettings, build_optimizer, build_scheduler
 from omegaconf import OmegaConf, open_dict
-
-from models import build_model
-from train.checkpoint import build_loss_from_config
-from train.curriculum import Curriculum, dataset_config
-from train.loop import TrainerSettings, build_optimizer, build_scheduler
 
 ROOT = Path(__file__).resolve().parent.parent
 CONFIGS = ROOT / "configs"
@@ -199,7 +198,7 @@ def test_reproduce_scale_wins_over_the_experiment(reproduce, experiment):
 
 def test_reproduce_splits_on_the_shared_data(shared_data):
     """Pair counts of docs/results.md: held-out shapes, held-out views, a split in time."""
-    from datasets import build_dataset
+    from linereg.datasets import build_dataset
 
     expected = {"airplane": (864, 216), "human": (120, 30), "real": (190, 40)}
     for reproduce, counts in expected.items():

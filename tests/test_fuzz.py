@@ -14,18 +14,18 @@ import re
 import warnings
 from dataclasses import dataclass
 
+import linereg.losses.supervised  # noqa: F401  (registers the supervised losses and regularisers)
 import pytest
 import torch
 import torch.nn.functional as F
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
+from linereg.losses import LOSSES, AlignmentLoss, build_loss
+from linereg.losses.lines import SAMPLERS
+from linereg.models import MODELS, build_model
 
-import losses.supervised  # noqa: F401  (registers the supervised losses and regularisers)
 from linereg.se3 import inverse, se3_exp, transform_points
 from linereg.structures import PairBatch, RegistrationOutput
-from losses import LOSSES, AlignmentLoss, build_loss
-from losses.lines import SAMPLERS
-from models import MODELS, build_model
 
 GEOMETRIES = ("random", "coincident", "collinear", "planar")
 SCALES = (1e-9, 1e-6, 1e-3, 1.0, 1e3, 1e6)

@@ -4,19 +4,19 @@ from __future__ import annotations
 
 import warnings
 
+import linereg.losses.supervised  # noqa: F401  (registers the supervised losses)
 import pytest
 import torch
 import torch.nn.functional as F
+from linereg.losses.base import build_loss
+from linereg.models import MODELS, build_model, list_models
+from linereg.models.blocks import shared_mlp, soft_correspondence_transform
+from linereg.models.rpmnet import PPFFeatures, ball_query, log_sinkhorn
 
-import losses.supervised  # noqa: F401  (registers the supervised losses)
 from linereg.checks import check_transform
 from linereg.random_poses import random_transform_paper
 from linereg.se3 import inverse, rotation_angle, rt_to_matrix, transform_normals, transform_points
 from linereg.structures import PairBatch, RegistrationOutput
-from losses.base import build_loss
-from models import MODELS, build_model, list_models
-from models.blocks import shared_mlp, soft_correspondence_transform
-from models.rpmnet import PPFFeatures, ball_query, log_sinkhorn
 
 MODEL_NAMES = MODELS.names()
 

@@ -12,15 +12,15 @@ import numpy as np
 import pytest
 import torch
 from hydra import compose, initialize_config_dir
+from linereg.train.methods import build_method
+from linereg.train.register import RegisterError, parse_init, register_files
+from linereg.train.solvers import start_poses
 from omegaconf import open_dict
 
 from linereg.io import read_point_cloud, read_transform, write_point_cloud, write_transform
 from linereg.metrics import registration_errors
 from linereg.paths import REPO_ROOT
 from linereg.se3 import euler_to_rotmat, rotation_angle, rt_to_matrix
-from train.methods import build_method
-from train.register import RegisterError, parse_init, register_files
-from train.solvers import start_poses
 
 
 def surface(n: int, seed: int) -> np.ndarray:

@@ -1,4 +1,4 @@
-"""The ``register`` default, :class:`train.solvers.RobustRegistration`, and its building blocks."""
+"""The ``register`` default, :class:`linereg.train.solvers.RobustRegistration`, and its building blocks."""
 
 from __future__ import annotations
 
@@ -7,11 +7,9 @@ import math
 import numpy as np
 import pytest
 import torch
-
-from linereg.se3 import euler_to_rotmat, rotation_angle, rt_to_matrix
-from losses.chamfer import chamfer_welsch_distance
-from train.methods import build_method
-from train.solvers import (
+from linereg.losses.chamfer import chamfer_welsch_distance
+from linereg.train.methods import build_method
+from linereg.train.solvers import (
     NearestTarget,
     RobustOptions,
     alignment_quality,
@@ -23,6 +21,8 @@ from train.solvers import (
     torch_threads,
     welsch_irls,
 )
+
+from linereg.se3 import euler_to_rotmat, rotation_angle, rt_to_matrix
 
 
 def surface(n: int, seed: int) -> np.ndarray:

@@ -9,13 +9,13 @@ import numpy as np
 import pytest
 import torch
 from hydra import compose, initialize_config_dir
+from linereg.losses import Loss
+from linereg.train import loop
+from linereg.train.checkpoint import load_checkpoint, load_model
+from linereg.train.logging import read_scalars
 
 from linereg.io import write_point_cloud
 from linereg.structures import LossOutput
-from losses import Loss
-from train import loop
-from train.checkpoint import load_checkpoint, load_model
-from train.logging import read_scalars
 
 ROOT = Path(__file__).resolve().parent.parent
 

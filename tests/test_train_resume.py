@@ -14,11 +14,10 @@ import numpy as np
 import pytest
 import torch
 from hydra import compose, initialize_config_dir
-
-from losses import build_loss
-from train import checkpoint, loop
-from train.evaluate import evaluate
-from train.logging import read_scalars
+from linereg.losses import build_loss
+from linereg.train import checkpoint, loop
+from linereg.train.evaluate import evaluate
+from linereg.train.logging import read_scalars
 
 ROOT = Path(__file__).resolve().parent.parent
 SMALL = ["model.num_neighbors=8", "loss.num_lines=300"]

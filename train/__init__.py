@@ -1,6 +1,6 @@
 """Training, evaluation and registration entry points (``python -m train``, ``train.evaluate``, ...).
 
-``train(cfg)`` (:mod:`train.loop`) is imported on first use, so that light entry points of this
+``train(cfg)`` (:mod:`linereg.train.loop`) is imported on first use, so that light entry points of this
 package (``train.summary``) start without loading torch and the models.
 """
 
@@ -13,7 +13,7 @@ __all__ = ["train"]
 
 def __getattr__(name: str) -> Any:
     if name == "train":
-        from train.loop import train
+        from linereg.train.loop import train
 
         return train
     raise AttributeError(f"module 'train' has no attribute {name!r}")

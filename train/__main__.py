@@ -1,15 +1,14 @@
 """``python -m train [experiment=...] [key=value ...]``: a thin Hydra wrapper around
-:func:`train.loop.train` (``configs/train.yaml``). Returns the optimised metric to sweepers."""
+:func:`linereg.train.loop.train` (``configs/train.yaml``). Returns the optimised metric to sweepers."""
 
 from __future__ import annotations
 
 import sys
 
 import hydra
+from linereg.train import distributed
+from linereg.train.loop import train
 from omegaconf import DictConfig
-
-from train import distributed
-from train.loop import train
 
 
 @hydra.main(version_base="1.3", config_path="../configs", config_name="train")

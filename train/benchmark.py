@@ -34,7 +34,7 @@ shared data folder, :func:`linereg.paths.shared_data_dir`):
 ``folder``
     The user's pairs ``<name>_src/_tgt.<ext>`` + ``<name>_gt.txt`` (``datasets.pairs_folder``).
 ``dataset``
-    Any labelled dataset config of :func:`datasets.build_dataset`.
+    Any labelled dataset config of :func:`linereg.datasets.build_dataset`.
 ``run``
     The pairs of one split (default ``test``) of a training run's dataset, read from the run's
     checkpoint: the classical methods scored on exactly the pairs a trained model was
@@ -60,11 +60,15 @@ from typing import Any
 
 import numpy as np
 import torch
+from linereg.datasets import build_dataset
+from linereg.datasets.protocol import ScanSettings, Shape, ShapeViews, build_protocol, finish_scan_pair
+from linereg.datasets.threedmatch import ThreeDMatchPairs
+from linereg.train import baselines, solvers  # noqa: F401  (importing registers the baselines and adam_loss / svd_irls)
+from linereg.train.checkpoint import find_checkpoint, load_checkpoint
+from linereg.train.curriculum import build_split
+from linereg.train.methods import METHODS, Method, build_method
 from tqdm.auto import tqdm
 
-from datasets import build_dataset
-from datasets.protocol import ScanSettings, Shape, ShapeViews, build_protocol, finish_scan_pair
-from datasets.threedmatch import ThreeDMatchPairs
 from linereg.io import read_mesh
 from linereg.metrics import ERROR_KEYS, alpha_recall, paper_table, registration_errors, summarize
 from linereg.paths import shared_data_dir
@@ -72,11 +76,6 @@ from linereg.random_poses import random_transform_paper
 from linereg.registry import Registry
 from linereg.se3 import transform_normals, transform_points
 from linereg.structures import PairSample
-
-from . import baselines, solvers  # noqa: F401  (importing registers the baselines and adam_loss / svd_irls)
-from .checkpoint import find_checkpoint, load_checkpoint
-from .curriculum import build_split
-from .methods import METHODS, Method, build_method
 
 PAIR_SOURCES: Registry[list[PairSample]] = Registry("benchmark pair source")
 
@@ -122,7 +121,7 @@ def _labelled(pairs: Sequence[PairSample], where: str) -> list[PairSample]:
 
 @PAIR_SOURCES.register("dataset")
 def dataset_pairs(dataset: Mapping[str, Any], *, pairs: int | None = None, seed: int = 0) -> list[PairSample]:
-    """``pairs`` labelled pairs of any dataset config (see :func:`datasets.build_dataset`).
+    """``pairs`` labelled pairs of any dataset config (see :func:`linereg.datasets.build_dataset`).
 
     Args:
         dataset: ``{name: <registered dataset>, **kwargs}``.
@@ -312,7 +311,7 @@ def folder_pairs(
     num_points: int | None = None,
     half_extent: float | None = None,
 ) -> list[PairSample]:
-    """The user's labelled pairs in a folder (see :mod:`datasets.pairs_folder`).
+    """The user's labelled pairs in a folder (see :mod:`linereg.datasets.pairs_folder`).
 
     Args:
         root: the folder of ``<name>_src``, ``<name>_tgt`` and ``<name>_gt.txt`` files.
@@ -341,7 +340,7 @@ def partial_vs_whole_source(
     **settings: Any,
 ) -> list[PairSample]:
     """A partial view against the whole shape, for any folder of meshes or point files
-    (:mod:`datasets.partial_vs_whole`: source = a hidden-point-removal view of 1024 points,
+    (:mod:`linereg.datasets.partial_vs_whole`: source = a hidden-point-removal view of 1024 points,
     target = 2048 random points of the whole shape, both in ``[-1, 1]^3``, the paper's pose).
 
     Args:
@@ -349,9 +348,9 @@ def partial_vs_whole_source(
         pairs: number of pairs (``None``: 40); pair ``i`` uses shape ``i mod S``.
         seed: seed of every draw.
         patterns: glob patterns under ``root`` (e.g. ``["airplane/*.txt"]``).
-        **settings: fields of :class:`~datasets.partial_vs_whole.PartialVsWholeSettings`.
+        **settings: fields of :class:`~linereg.datasets.partial_vs_whole.PartialVsWholeSettings`.
     """
-    from datasets.partial_vs_whole import PartialVsWholeSettings, partial_vs_whole_pairs
+    from linereg.datasets.partial_vs_whole import PartialVsWholeSettings, partial_vs_whole_pairs
 
     return partial_vs_whole_pairs(
         _data_path(root, root),
@@ -396,7 +395,7 @@ def run_benchmark(
 
     Args:
         pairs: labelled pairs (``gt_transform`` maps source to target).
-        methods: display name -> method (see :mod:`train.methods`).
+        methods: display name -> method (see :mod:`linereg.train.methods`).
         progress: show a tqdm bar.
         journal: a JSON-lines file that receives every record as soon as it is measured;
             records already in it (same pair and method) are reused, so an interrupted run

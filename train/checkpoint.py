@@ -30,14 +30,13 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
+import linereg.losses.supervised  # noqa: F401  (registers the supervised losses and regularisers)
 import numpy as np
 import torch
+from linereg.losses import Loss, build_loss
+from linereg.models import build_model
 from omegaconf import DictConfig, OmegaConf
 from torch import nn
-
-import losses.supervised  # noqa: F401  (registers the supervised losses and regularisers)
-from losses import Loss, build_loss
-from models import build_model
 
 FORMAT = "linereg-checkpoint"
 VERSION = 1
@@ -305,7 +304,7 @@ def build_loss_from_config(config: Mapping[str, Any] | DictConfig) -> Loss:
 
     Raises:
         ValueError: a non-scalar key next to ``terms``.
-        KeyError, TypeError: unknown loss names or arguments (from :func:`losses.build_loss`).
+        KeyError, TypeError: unknown loss names or arguments (from :func:`linereg.losses.build_loss`).
     """
     if isinstance(config, DictConfig):
         raw = OmegaConf.to_container(config, resolve=False)

@@ -29,11 +29,11 @@ from dataclasses import dataclass, fields
 from typing import Any
 
 import numpy as np
+from linereg.datasets import build_dataset, materialize
+from linereg.datasets.base import PairDataset
 from omegaconf import DictConfig, OmegaConf
 from torch.utils.data import Dataset, Subset
 
-from datasets import build_dataset, materialize
-from datasets.base import PairDataset
 from linereg.structures import PairSample
 
 SPLITS = ("train", "val", "test")
@@ -201,7 +201,7 @@ def dataset_config(config: Mapping[str, Any], split: str, variant: str | None = 
         variant: a key of ``config["variants"]``, or ``None``.
 
     Returns:
-        The mapping for :func:`datasets.build_dataset`, or ``None`` when the dataset has no
+        The mapping for :func:`linereg.datasets.build_dataset`, or ``None`` when the dataset has no
         such split (``splits: {val: null}``).
     """
     config = plain(config)
@@ -236,7 +236,7 @@ def build_split(
     """The dataset of one split, optionally a seeded subset, cached on disk when configured.
 
     A ``cache_dir`` key generates the pairs actually used (the subset, not the whole split)
-    once into the on-disk cache of :mod:`datasets.cache`.
+    once into the on-disk cache of :mod:`linereg.datasets.cache`.
 
     Args:
         config: a dataset config (see the module docstring).

@@ -30,6 +30,11 @@ from typing import Any
 import hydra
 import numpy as np
 import torch
+from linereg.models import build_model
+from linereg.train import distributed
+from linereg.train.checkpoint import build_loss_from_config, load_checkpoint
+from linereg.train.curriculum import build_split, plain
+from linereg.train.figures import plot_registration
 from omegaconf import DictConfig, open_dict
 from torch import nn
 from torch.utils.data import Dataset
@@ -37,11 +42,6 @@ from tqdm.auto import tqdm
 
 from linereg.metrics import ERROR_KEYS, alpha_recall, paper_table, registration_errors, summarize
 from linereg.structures import PairBatch
-from models import build_model
-from train import distributed
-from train.checkpoint import build_loss_from_config, load_checkpoint
-from train.curriculum import build_split, plain
-from train.figures import plot_registration
 
 log = logging.getLogger(__name__)
 

@@ -39,15 +39,9 @@ from typing import Any
 import numpy as np
 import torch
 from hydra.core.hydra_config import HydraConfig
-from omegaconf import DictConfig, OmegaConf
-from torch import nn
-from tqdm.auto import tqdm
-
-from linereg.registry import Registry
-from linereg.structures import LossOutput, PairBatch, RegistrationOutput
-from models import build_model
-from train import distributed
-from train.checkpoint import (
+from linereg.models import build_model
+from linereg.train import distributed
+from linereg.train.checkpoint import (
     BEST,
     CHECKPOINT_DIR,
     LAST,
@@ -61,10 +55,16 @@ from train.checkpoint import (
     rng_state,
     save_checkpoint,
 )
-from train.curriculum import Curriculum, Stage, build_split, plain
-from train.evaluate import Evaluation, evaluate_model, report, write_evaluation
-from train.figures import registration_figure
-from train.logging import RunLogger
+from linereg.train.curriculum import Curriculum, Stage, build_split, plain
+from linereg.train.evaluate import Evaluation, evaluate_model, report, write_evaluation
+from linereg.train.figures import registration_figure
+from linereg.train.logging import RunLogger
+from omegaconf import DictConfig, OmegaConf
+from torch import nn
+from tqdm.auto import tqdm
+
+from linereg.registry import Registry
+from linereg.structures import LossOutput, PairBatch, RegistrationOutput
 
 log = logging.getLogger(__name__)
 
@@ -212,13 +212,13 @@ def _flatten(config: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:
 
 
 class Trainer:
-    """Trains one model through its curriculum (use :func:`train`).
+    """Trains one model through its curriculum (use :func:`linereg.train`).
 
     Args:
         config: the resolved run config (plain dict).
         run_dir: the run folder (checkpoints, logs, evaluation).
         ctx: distributed context of this process.
-        loss: the loss (built by :func:`train` from the unresolved config, to check handles).
+        loss: the loss (built by :func:`linereg.train` from the unresolved config, to check handles).
     """
 
     def __init__(self, config: dict[str, Any], run_dir: Path, ctx: distributed.DistContext, loss: nn.Module) -> None:
@@ -252,7 +252,7 @@ class Trainer:
 
     # ----------------------------------------------------------------------------- state
     def state_dict(self, metrics: Mapping[str, float]) -> dict[str, Any]:
-        """Everything needed to continue exactly (see :mod:`train.checkpoint`); before the first
+        """Everything needed to continue exactly (see :mod:`linereg.train.checkpoint`); before the first
         stage (an untrained run) ``progress.stage`` and ``progress.stage_name`` are ``None``."""
         stage = None if self.stage_index is None else self.curriculum.stages[self.stage_index]
         return {

@@ -141,13 +141,12 @@ def register_files(cfg: DictConfig, out_dir: Path) -> tuple[Any, dict[str, Any]]
         RegisterError: a bad argument or file, naming it.
     """
     import torch
+    from linereg.train import solvers  # noqa: F401  (registers robust, adam_loss and svd_irls)
+    from linereg.train.methods import build_method
 
     from linereg.io import read_transform, write_point_cloud, write_transform
     from linereg.metrics import registration_errors, rotation_error_deg
     from linereg.se3 import transform_normals
-
-    from . import solvers  # noqa: F401  (registers robust, adam_loss and svd_irls)
-    from .methods import build_method
 
     src = read_cloud(cfg.source, "source")
     tgt = read_cloud(cfg.target, "target")
@@ -218,7 +217,7 @@ def register_files(cfg: DictConfig, out_dir: Path) -> tuple[Any, dict[str, Any]]
     write_point_cloud(out_dir / "registered.ply", moved, normals)
     (out_dir / "result.json").write_text(json.dumps(report, indent=2, default=float))
     if cfg.picture:
-        from .figures import plot_registration
+        from linereg.train.figures import plot_registration
 
         plot_registration(src.xyz, tgt.xyz, transform, out_dir / "registration.png", title=Path(cfg.source).name)
     return result, report

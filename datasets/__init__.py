@@ -18,9 +18,10 @@ from memory) and ``cache_workers`` (processes used to fill it; default all cores
 
 from __future__ import annotations
 
-import inspect
 from collections.abc import Mapping
 from typing import Any
+
+from torch.utils.data import Dataset
 
 from linereg.datasets import (  # noqa: F401  (importing registers the builders)
     cache,
@@ -34,10 +35,10 @@ from linereg.datasets import (  # noqa: F401  (importing registers the builders)
 from linereg.datasets.base import DATASETS, PairDataset, item_rng
 from linereg.datasets.cache import CachedPairs, materialize
 from linereg.datasets.collate import collate_pairs
-from omegaconf import DictConfig, OmegaConf
-from torch.utils.data import Dataset
+from linereg.registry import plain
 
 __all__ = [
+    "CACHE_KEYS",
     "DATASETS",
     "CachedPairs",
     "PairDataset",
@@ -47,16 +48,7 @@ __all__ = [
     "materialize",
 ]
 
-_CACHE_KEYS = ("cache_dir", "cache_workers")
-
-
-def _plain_mapping(config: Any) -> dict[str, Any]:
-    """A plain dict from a mapping or an OmegaConf config (interpolations resolved)."""
-    if isinstance(config, DictConfig):
-        return OmegaConf.to_container(config, resolve=True)
-    if not isinstance(config, Mapping):
-        raise TypeError(f"dataset config must be a mapping {{name: ..., **kwargs}}, got {type(config).__name__}")
-    return dict(config)
+CACHE_KEYS = ("cache_dir", "cache_workers")
 
 
 def build_dataset(config: Mapping[str, Any]) -> Dataset:
@@ -71,30 +63,17 @@ def build_dataset(config: Mapping[str, Any]) -> Dataset:
 
     Raises:
         TypeError: ``config`` is not a mapping.
-        KeyError: unknown dataset name (the message lists registered names).
-        ValueError: missing ``name`` or keys the builder does not accept (listed).
+        linereg.registry.UnknownNameError: no or an unknown dataset name (lists the registered ones).
+        linereg.registry.ArgumentError: keys the builder does not accept, or required ones missing.
     """
-    config = _plain_mapping(config)
-    if "name" not in config:
-        raise ValueError(f"dataset config needs a 'name'; registered: {DATASETS.names()}")
-    name = config.pop("name")
-    builder = DATASETS.get(name)
-    cache_options = {key: config.pop(key) for key in _CACHE_KEYS if key in config}
-    parameters = [
-        p for p in inspect.signature(builder).parameters.values() if p.kind in (p.KEYWORD_ONLY, p.POSITIONAL_OR_KEYWORD)
-    ]
-    accepted = [p.name for p in parameters]
-    missing = [p.name for p in parameters if p.default is p.empty and p.name not in config]
-    if missing:
-        raise ValueError(f"dataset {name!r} needs key(s) {missing}")
-    unknown = sorted(set(config) - set(accepted))
-    if unknown:
-        raise ValueError(
-            f"unknown key(s) {unknown} for dataset {name!r}; accepted: {sorted([*accepted, *_CACHE_KEYS])}"
-        )
-    dataset = builder(**config)
+    config = plain(config)
+    if not isinstance(config, Mapping):
+        raise TypeError(f"dataset config must be a mapping {{name: ..., **kwargs}}, got {type(config).__name__}")
+    config = dict(config)
+    cache_options = {key: config.pop(key) for key in CACHE_KEYS if key in config}
+    dataset = DATASETS.build(config)
     if cache_options.get("cache_dir") is not None:
         if not isinstance(dataset, PairDataset):
-            raise ValueError(f"dataset {name!r} is already a cache; drop 'cache_dir'")
+            raise ValueError(f"dataset {config['name']!r} is already a cache; drop 'cache_dir'")
         return materialize(dataset, cache_options["cache_dir"], workers=cache_options.get("cache_workers"))
     return dataset

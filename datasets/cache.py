@@ -34,10 +34,10 @@ from typing import Any, BinaryIO
 
 import numpy as np
 import torch
-from linereg.datasets.base import DATASETS, PairDataset
 from torch.utils.data import Dataset
 from tqdm import tqdm
 
+from linereg.datasets.base import DATASETS, PairDataset
 from linereg.structures import PairSample
 
 FORMAT_VERSION = 1

@@ -13,8 +13,8 @@ from itertools import accumulate
 from typing import Any
 
 import numpy as np
-from linereg.datasets.base import DATASETS, PairDataset
 
+from linereg.datasets.base import DATASETS, PairDataset
 from linereg.structures import PairSample
 
 SPLITS = ("train", "test", "all")

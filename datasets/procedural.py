@@ -15,10 +15,10 @@ from typing import Any
 import numpy as np
 import torch
 import trimesh
+
 from linereg.datasets.base import DATASETS, item_rng
 from linereg.datasets.protocol import Shape, build_protocol
 from linereg.datasets.shape_pairs import ShapePairDataset
-
 from linereg.random_poses import random_rotation
 
 PRIMITIVE_KINDS = ("box", "ellipsoid", "cylinder", "cone", "torus", "capsule")

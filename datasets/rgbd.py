@@ -31,6 +31,7 @@ from typing import Any
 
 import numpy as np
 import torch
+
 from linereg.datasets.base import DATASETS, PairDataset, item_rng
 from linereg.datasets.formats import (
     Intrinsics,
@@ -42,7 +43,6 @@ from linereg.datasets.formats import (
     read_pose_matrix,
 )
 from linereg.datasets.protocol import ScanSettings, finish_scan_pair
-
 from linereg.se3 import compose, inverse
 from linereg.structures import PairSample
 

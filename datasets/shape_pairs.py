@@ -8,7 +8,6 @@ from typing import Any, Protocol
 
 from linereg.datasets.base import PairDataset, item_rng
 from linereg.datasets.protocol import CropProtocol, Shape, ShapeViews, ViewProtocol, protocol_settings
-
 from linereg.structures import PairSample
 
 _PAIR_STREAM = 11

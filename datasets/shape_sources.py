@@ -24,10 +24,10 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+
 from linereg.datasets.base import DATASETS
 from linereg.datasets.protocol import Shape, build_protocol
 from linereg.datasets.shape_pairs import ShapePairDataset
-
 from linereg.io import MESH_SUFFIXES, read_mesh, read_point_cloud
 
 SPLITS = ("train", "test", "all")

@@ -29,9 +29,9 @@ if str(REPO_ROOT) not in sys.path:
     sys.path.insert(0, str(REPO_ROOT))
 
 import torch  # noqa: E402
-from linereg.datasets import build_dataset, collate_pairs, materialize  # noqa: E402
 from torch.utils.data import DataLoader  # noqa: E402
 
+from linereg.datasets import build_dataset, collate_pairs, materialize  # noqa: E402
 from linereg.paths import shared_data_dir  # noqa: E402
 
 VIEWS = 18

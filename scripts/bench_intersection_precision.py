@@ -19,9 +19,8 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from linereg.train.solvers import AdamRegistration
-
 from linereg.metrics import registration_errors
+from linereg.registration.solvers import AdamRegistration
 from linereg.se3 import euler_to_rotmat, rt_to_matrix, transform_points
 from scripts.bench_loss import surface
 

@@ -49,7 +49,6 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from linereg.losses.line_intersection import LineMetricOptions, line_intersection_metric
 from linereg.losses.lines import sample_lines
-
 from linereg.se3 import euler_to_rotmat, rt_to_matrix, transform_points
 from tests.line_reference import dense_line_metric
 

@@ -41,8 +41,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 import linereg.losses.supervised  # noqa: F401  (registers the supervised losses)
 from linereg.losses.base import build_loss
-from linereg.models import build_model, list_models
-
+from linereg.models import MODELS
 from linereg.random_poses import random_transform_paper
 from linereg.se3 import transform_normals, transform_points
 from linereg.structures import PairBatch
@@ -170,7 +169,7 @@ def main() -> None:
     parser.add_argument("--device", default="cpu", help="cpu or cuda[:index]")
     parser.add_argument("--points", type=int, default=1024)
     parser.add_argument("--batch-sizes", type=int, nargs="+", default=[1, 4])
-    parser.add_argument("--models", nargs="+", default=list_models(), choices=list_models())
+    parser.add_argument("--models", nargs="+", default=MODELS.names(), choices=MODELS.names())
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--threads", type=int, default=None, help="torch intra-op threads")
     parser.add_argument("--set", nargs="*", default=[], dest="overrides", metavar="M.ARG=V")
@@ -191,7 +190,7 @@ def main() -> None:
     print("| --- | --- | --- | --- | --- | --- | --- |")
     for name in args.models:
         torch.manual_seed(0)
-        model = build_model({"name": name, **overrides.get(name, {})}).to(device)
+        model = MODELS.build({"name": name, **overrides.get(name, {})}).to(device)
         loss = build_loss({"name": SUPERVISED_LOSS[name]})
         parameters = sum(p.numel() for p in model.parameters())
         for batch_size in args.batch_sizes:

@@ -18,9 +18,8 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
+from linereg.datasets.benchmark_pairs import run_pairs
 from linereg.losses import build_loss
-from linereg.train.benchmark import run_pairs
-
 from linereg.se3 import transform_points
 
 

@@ -36,7 +36,6 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from linereg.losses import build_loss
-
 from linereg.se3 import compose, inverse, se3_exp, se3_log, transform_points
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -69,9 +68,10 @@ def protocol_pairs(protocol: str, split: str, num_points: int, pairs: int, seed:
     from hydra import compose as hydra_compose
     from hydra import initialize_config_dir
     from hydra.core.hydra_config import HydraConfig
-    from linereg.train.benchmark import select_indices
-    from linereg.train.curriculum import build_split
     from omegaconf import OmegaConf
+
+    from linereg.datasets.benchmark_pairs import select_indices
+    from linereg.datasets.splits import build_split
 
     overrides = [
         "experiment=rpm_gt",

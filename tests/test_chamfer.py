@@ -6,9 +6,9 @@ import math
 
 import pytest
 import torch
+
 from linereg.losses import build_loss
 from linereg.losses.chamfer import chamfer_distance, chamfer_welsch_distance, welsch
-
 from linereg.se3 import rt_to_matrix
 from linereg.structures import PairBatch, RegistrationOutput
 

@@ -8,11 +8,11 @@ import sys
 
 import numpy as np
 import pytest
+from omegaconf import OmegaConf
+
 from linereg.datasets import DATASETS, build_dataset
 from linereg.datasets.base import PairDataset
 from linereg.datasets.cache import MANIFEST, CachedPairs, CorruptCacheError, cache_path, materialize
-from omegaconf import OmegaConf
-
 from linereg.structures import PairSample
 
 CONFIG = {
@@ -103,7 +103,6 @@ def test_build_dataset_with_cache_dir_uses_worker_processes(tmp_path):
 
 def test_unlabeled_and_variable_size_pairs_round_trip(tmp_path):
     from linereg.datasets.cache import write_shard
-
     from linereg.structures import PairSample
 
     samples = [

@@ -7,9 +7,9 @@ import functools
 import numpy as np
 import pytest
 import torch
-from linereg.datasets.collate import collate_pairs
 from torch.utils.data import DataLoader
 
+from linereg.datasets.collate import collate_pairs
 from linereg.structures import PairSample
 
 

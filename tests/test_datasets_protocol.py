@@ -5,6 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import trimesh
+from scipy.spatial import cKDTree
+
 from linereg.datasets import build_dataset
 from linereg.datasets.procedural import ProceduralShapes, procedural_shape
 from linereg.datasets.protocol import (
@@ -16,7 +18,6 @@ from linereg.datasets.protocol import (
     scale_transform,
 )
 from linereg.datasets.shape_pairs import ShapePairDataset
-from scipy.spatial import cKDTree
 
 
 def _apply(transform: np.ndarray, points: np.ndarray) -> np.ndarray:

@@ -5,11 +5,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import trimesh
+from scipy.spatial import cKDTree
+
 from linereg.datasets import build_dataset
 from linereg.datasets.formats import read_depth_image, read_intrinsics
 from linereg.datasets.rgbd import depth_to_points
-from scipy.spatial import cKDTree
-
 from linereg.io import read_mesh
 
 pytestmark = pytest.mark.shared_data

@@ -9,14 +9,14 @@ import numpy as np
 import open3d as o3d
 import pytest
 import trimesh
-from linereg.datasets import build_dataset
-from linereg.datasets.formats import read_depth_image, read_log, read_overlap_log
-from linereg.datasets.procedural import procedural_shape
-from linereg.datasets.rgbd import depth_to_points
 from PIL import Image
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
+from linereg.datasets import build_dataset
+from linereg.datasets.formats import read_depth_image, read_log, read_overlap_log
+from linereg.datasets.procedural import procedural_shape
+from linereg.datasets.rgbd import depth_to_points
 from linereg.io import write_point_cloud, write_transform
 
 

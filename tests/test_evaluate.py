@@ -9,10 +9,11 @@ import numpy as np
 import pytest
 import torch
 from hydra import compose, initialize_config_dir
+
+from linereg.checkpoint import find_checkpoint, load_checkpoint
+from linereg.datasets.splits import build_split
 from linereg.train import loop
 from linereg.train.benchmark import run_pairs
-from linereg.train.checkpoint import find_checkpoint, load_checkpoint
-from linereg.train.curriculum import build_split
 from linereg.train.evaluate import Evaluation, evaluate, report
 from linereg.train.figures import plot_registration, registration_figure
 

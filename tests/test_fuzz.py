@@ -14,16 +14,16 @@ import re
 import warnings
 from dataclasses import dataclass
 
-import linereg.losses.supervised  # noqa: F401  (registers the supervised losses and regularisers)
 import pytest
 import torch
 import torch.nn.functional as F
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
+
+import linereg.losses.supervised  # noqa: F401  (registers the supervised losses and regularisers)
 from linereg.losses import LOSSES, AlignmentLoss, build_loss
 from linereg.losses.lines import SAMPLERS
-from linereg.models import MODELS, build_model
-
+from linereg.models import MODELS
 from linereg.se3 import inverse, se3_exp, transform_points
 from linereg.structures import PairBatch, RegistrationOutput
 
@@ -219,7 +219,7 @@ MODEL_NAMES = MODELS.names()
 def test_every_model_is_finite_or_explains(name, data):
     case = data.draw(cases(max_points=16, equal_counts=name == "fmr"))
     torch.manual_seed(case.seed)
-    model = build_model({"name": name, **SMALL_MODELS[name]}).train()
+    model = MODELS.build({"name": name, **SMALL_MODELS[name]}).train()
     batch = make_batch(case, normals=True)
     loss = build_loss({"name": SUPERVISED_LOSS[name]})
 

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import pytest
 import torch
-from linereg.losses import LOSSES, WeightedSum, build_loss
 
+from linereg.losses import LOSSES, WeightedSum, build_loss
 from linereg.structures import PairBatch, RegistrationOutput
 
 

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import pytest
 import torch
+
 from linereg.losses.base import LOSSES, build_loss
 from linereg.losses.supervised import (
     DCPCycleLoss,
@@ -14,7 +15,6 @@ from linereg.losses.supervised import (
     RPMNetSupervisedLoss,
     outlier_penalty,
 )
-
 from linereg.random_poses import random_transform_paper
 from linereg.se3 import inverse, rt_to_matrix
 from linereg.structures import PairBatch, RegistrationOutput

@@ -9,6 +9,7 @@ from pathlib import Path
 import pytest
 import torch
 import torch.multiprocessing as mp
+
 from linereg.train import distributed
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -32,6 +33,7 @@ def _worker(rank: int, world_size: int, port: int, output_dir: str, results: str
         }
     )
     from hydra import compose, initialize_config_dir
+
     from linereg.train.loop import train
 
     with initialize_config_dir(str(ROOT / "configs"), version_base="1.3"):

@@ -6,9 +6,10 @@ from __future__ import annotations
 import sys
 
 import hydra
+from omegaconf import DictConfig
+
 from linereg.train import distributed
 from linereg.train.loop import train
-from omegaconf import DictConfig
 
 
 @hydra.main(version_base="1.3", config_path="../configs", config_name="train")

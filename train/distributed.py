@@ -22,11 +22,11 @@ from typing import Any
 
 import torch
 import torch.distributed as dist
-from linereg.datasets import collate_pairs
 from torch import nn
 from torch.nn.parallel import DistributedDataParallel
 from torch.utils.data import DataLoader, Dataset, DistributedSampler
 
+from linereg.datasets import collate_pairs
 from linereg.structures import RegistrationOutput
 
 AMP_DTYPES = {"bf16": torch.bfloat16, "fp16": torch.float16}

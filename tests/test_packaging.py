@@ -1,0 +1,79 @@
+"""One import name: every module is ``linereg.<...>``; the top-level folders are never packages of their own."""
+
+from __future__ import annotations
+
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+import linereg
+
+ROOT = Path(__file__).resolve().parent.parent
+SUBPACKAGES = ("losses", "models", "datasets", "registration", "train")
+OLD_IMPORT = re.compile(rf"^\s*(from|import)\s+({'|'.join(SUBPACKAGES)})(\.|\s|$)", re.M)
+OLD_TARGET = re.compile(rf"_target_:\s*({'|'.join(SUBPACKAGES)})\.")
+
+
+def _sources(*suffixes: str) -> list[Path]:
+    tracked = subprocess.run(["git", "ls-files"], cwd=ROOT, capture_output=True, text=True, check=False).stdout.split()
+    if not tracked:  # not a git checkout (e.g. an sdist): every file below the root
+        tracked = [str(p.relative_to(ROOT)) for p in ROOT.rglob("*") if ".venv" not in p.parts]
+    return [ROOT / name for name in tracked if name.endswith(suffixes) and (ROOT / name).is_file()]
+
+
+def test_no_module_imports_the_old_top_level_names():
+    offenders = [
+        f"{path.relative_to(ROOT)}:{text[: match.start()].count(chr(10)) + 1}: {match.group(0).strip()}"
+        for path in _sources(".py")
+        for text in [path.read_text()]
+        for match in OLD_IMPORT.finditer(text)
+    ]
+    assert not offenders, "import linereg.<package> instead:\n" + "\n".join(offenders)
+
+
+def test_no_config_targets_the_old_top_level_names():
+    offenders = [str(path.relative_to(ROOT)) for path in _sources(".yaml") if OLD_TARGET.search(path.read_text())]
+    assert not offenders, f"_target_ must name linereg.<package>...: {offenders}"
+
+
+def test_importing_every_module_loads_no_top_level_package():
+    """Walk every module of the package in a fresh interpreter; none may appear under a second name."""
+    script = f"""
+import importlib, pkgutil, sys
+import linereg
+names = []
+for package in {[f"linereg.{name}" for name in SUBPACKAGES]!r}:
+    module = importlib.import_module(package)
+    names += [info.name for info in pkgutil.walk_packages(module.__path__, package + ".")]
+names += [info.name for info in pkgutil.iter_modules([linereg.__path__[0]], "linereg.")]
+for name in names:
+    importlib.import_module(name)
+top = sorted(name for name in sys.modules if name.split(".")[0] in {SUBPACKAGES!r})
+print(len(names), top)
+assert not top, top
+"""
+    result = subprocess.run([sys.executable, "-c", script], cwd=ROOT, capture_output=True, text=True, check=False)
+    assert result.returncode == 0, result.stderr[-3000:] + result.stdout[-3000:]
+    assert int(result.stdout.split()[0]) > 40, result.stdout
+
+
+def test_checkout_subpackages_come_from_this_checkout():
+    import linereg.losses
+
+    assert Path(linereg.losses.__file__).resolve().is_relative_to(Path(linereg.__file__).resolve().parent.parent)
+
+
+def test_import_linereg_does_not_load_torch():
+    script = "import sys, linereg; assert 'torch' not in sys.modules; assert callable(linereg.register)"
+    result = subprocess.run([sys.executable, "-c", script], cwd=ROOT, capture_output=True, text=True, check=False)
+    assert result.returncode == 0, result.stderr[-2000:]
+
+
+def test_lazy_attribute_error_names_the_attribute():
+    try:
+        linereg.no_such_thing  # noqa: B018
+    except AttributeError as err:
+        assert "no_such_thing" in str(err)
+    else:
+        raise AssertionError("expected AttributeError")

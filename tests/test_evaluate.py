@@ -11,9 +11,9 @@ import torch
 from hydra import compose, initialize_config_dir
 
 from linereg.checkpoint import find_checkpoint, load_checkpoint
+from linereg.datasets.benchmark_pairs import run_pairs
 from linereg.datasets.splits import build_split
 from linereg.train import loop
-from linereg.train.benchmark import run_pairs
 from linereg.train.evaluate import Evaluation, evaluate, report
 from linereg.train.figures import plot_registration, registration_figure
 

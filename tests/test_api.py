@@ -79,7 +79,7 @@ def test_init_is_honoured(pair):
 
 
 def test_a_registered_method_with_options(pair):
-    src, tgt, T = pair
+    src, tgt, _ = pair
     result = linereg.register(src, tgt, method="icp_point", max_iterations=5, fitness_threshold=0.05)
     assert result.info["fitness_threshold"] == 0.05 and result.info["method"]["max_iterations"] == 5
     assert 0.0 <= result.fitness <= 1.0

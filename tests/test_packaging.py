@@ -77,3 +77,58 @@ def test_lazy_attribute_error_names_the_attribute():
         assert "no_such_thing" in str(err)
     else:
         raise AssertionError("expected AttributeError")
+
+
+def _declared() -> dict[str, set[str]]:
+    """Normalised distribution names of the base dependencies (``""``) and of each extra."""
+    import tomllib
+
+    from packaging.requirements import Requirement
+
+    project = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]
+    groups = {"": project["dependencies"], **project["optional-dependencies"]}
+    return {group: {_normalise(Requirement(line).name) for line in lines} for group, lines in groups.items()}
+
+
+def _normalise(name: str) -> str:
+    return re.sub(r"[-_.]+", "-", name).lower()
+
+
+# The extras a layer may use besides the base dependencies (imported inside the functions that need them).
+EXTRAS_ALLOWED = {
+    "linereg": set(),
+    "losses": set(),
+    "models": set(),
+    "datasets": {"train"},  # h5py: ModelNet40's HDF5 files
+    "registration": {"baselines"},  # fricp_cpp
+    "train": {"train", "cluster"},
+}
+
+
+def test_every_third_party_import_is_declared():
+    import ast
+    import importlib.metadata
+
+    distributions = importlib.metadata.packages_distributions()
+    declared = _declared()
+    own = {"linereg", "__future__"}
+    missing = []
+    for folder, extras in EXTRAS_ALLOWED.items():
+        allowed = set().union(declared[""], *(declared[extra] for extra in extras))
+        for path in sorted((ROOT / folder).glob("*.py")):
+            for node in ast.walk(ast.parse(path.read_text())):
+                if isinstance(node, ast.Import):
+                    names = [alias.name for alias in node.names]
+                elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
+                    names = [node.module]
+                else:
+                    continue
+                for name in names:
+                    top = name.split(".")[0]
+                    if top in own or top in sys.stdlib_module_names:
+                        continue
+                    provided = {_normalise(d) for d in distributions.get(top, [top])}
+                    # open3d-cpu provides open3d; either satisfies the platform-dependent requirement
+                    if not provided & allowed and not ("open3d" in provided and "open3d-cpu" in allowed):
+                        missing.append(f"{path.relative_to(ROOT)}: {name} ({', '.join(sorted(provided))})")
+    assert not missing, "undeclared dependencies:\n" + "\n".join(missing)

@@ -41,6 +41,7 @@ from linereg.metrics import (
 )
 from linereg.registration.methods import METHODS, Method
 from linereg.structures import PairSample
+from linereg.train import CONFIG_DIR
 
 ABSOLUTE_ALPHA_RANGE = (1e-4, 1.0)
 RELATIVE_ALPHA_RANGE = (3e-5, 0.3)
@@ -339,7 +340,7 @@ def main() -> None:
     import hydra
     from omegaconf import DictConfig, OmegaConf
 
-    @hydra.main(version_base="1.3", config_path="../configs", config_name="benchmark")
+    @hydra.main(version_base="1.3", config_path=CONFIG_DIR, config_name="benchmark")
     def app(config: DictConfig) -> None:
         paths = benchmark(OmegaConf.to_container(config, resolve=True))
         print(paths["table"].read_text())

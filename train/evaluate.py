@@ -42,7 +42,7 @@ from linereg.metrics import ERROR_KEYS, aggregate_errors, paper_table, registrat
 from linereg.models import MODELS
 from linereg.registry import plain
 from linereg.structures import PairBatch
-from linereg.train import distributed
+from linereg.train import CONFIG_DIR, distributed
 from linereg.train.figures import plot_registration
 
 log = logging.getLogger(__name__)
@@ -353,7 +353,7 @@ def _labelled(dataset: Dataset) -> bool:
     return len(dataset) > 0 and dataset[0].gt_transform is not None
 
 
-@hydra.main(version_base="1.3", config_path="../configs", config_name="evaluate")
+@hydra.main(version_base="1.3", config_path=CONFIG_DIR, config_name="evaluate")
 def main(cfg: DictConfig) -> None:
     evaluate(cfg)
 

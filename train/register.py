@@ -32,6 +32,8 @@ import hydra
 import numpy as np
 from omegaconf import DictConfig, ListConfig, OmegaConf
 
+from linereg.train import CONFIG_DIR
+
 log = logging.getLogger(__name__)
 
 _MIN_POINTS = 3
@@ -239,7 +241,7 @@ def _remove_if_empty(folder: Path) -> None:
         path.rmdir()
 
 
-@hydra.main(version_base="1.3", config_path="../configs/register", config_name="register")
+@hydra.main(version_base="1.3", config_path=f"{CONFIG_DIR}/register", config_name="register")
 def main(cfg: DictConfig) -> None:
     out_dir = Path(hydra.core.hydra_config.HydraConfig.get().runtime.output_dir)
     try:

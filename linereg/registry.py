@@ -50,6 +50,15 @@ def plain(config: Any) -> Any:
     return config
 
 
+def _keyword_parameters(function: Callable, positional: int) -> list[str] | None:
+    """Names ``function`` takes by keyword after its first ``positional`` ones; ``None`` with ``**kwargs``."""
+    parameters = list(inspect.signature(function).parameters.values())
+    if any(p.kind is p.VAR_KEYWORD for p in parameters):
+        return None
+    keyword = (inspect.Parameter.KEYWORD_ONLY, inspect.Parameter.POSITIONAL_OR_KEYWORD)
+    return [p.name for p in parameters[positional:] if p.kind in keyword]
+
+
 class Registry(Generic[T]):
     """A named collection of builders returning ``T``.
 
@@ -100,15 +109,16 @@ class Registry(Generic[T]):
         options.update(kwargs)
         builder = self.get(name)
         self._check_arguments(name, builder, len(args), options)
-        return builder(*args, **options)
+        if self.accepted(name, len(args)) is not None:
+            return builder(*args, **options)
+        try:  # a builder taking **kwargs checks them itself: name it in its complaint
+            return builder(*args, **options)
+        except TypeError as error:
+            raise ArgumentError(f"{self.kind} {name!r}: {error}") from error
 
     def accepted(self, name: str, positional: int = 0) -> list[str] | None:
         """Keyword arguments the builder of ``name`` takes (``None``: any, it has ``**kwargs``)."""
-        parameters = list(inspect.signature(self.get(name)).parameters.values())
-        if any(p.kind is p.VAR_KEYWORD for p in parameters):
-            return None
-        keyword = (inspect.Parameter.KEYWORD_ONLY, inspect.Parameter.POSITIONAL_OR_KEYWORD)
-        return [p.name for p in parameters[positional:] if p.kind in keyword]
+        return _keyword_parameters(self.get(name), positional)
 
     def _check_arguments(self, name: str, builder: Callable[..., T], positional: int, options: Mapping) -> None:
         accepted = self.accepted(name, positional)

@@ -130,11 +130,11 @@ def test_unlabeled_and_variable_size_pairs_round_trip(tmp_path):
 def test_build_dataset_errors_name_the_problem(tmp_path):
     with pytest.raises(KeyError, match=r"unknown dataset 'modelnet'.*modelnet40"):
         build_dataset({"name": "modelnet"})
-    with pytest.raises(ValueError, match=r"unknown key\(s\) \['num_shape'\].*num_shapes"):
+    with pytest.raises(ValueError, match=r"unknown argument\(s\) \['num_shape'\].*num_shapes"):
         build_dataset({"name": "procedural", "num_shape": 3})
-    with pytest.raises(ValueError, match=r"needs key\(s\) \['root'\]"):
+    with pytest.raises(ValueError, match=r"needs argument\(s\) \['root'\]"):
         build_dataset({"name": "mesh_folder"})
-    with pytest.raises(ValueError, match="needs a 'name'"):
+    with pytest.raises(KeyError, match="needs a 'name'"):
         build_dataset({"root": "x"})
     with pytest.raises(TypeError, match="must be a mapping"):
         build_dataset("procedural")

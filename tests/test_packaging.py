@@ -7,6 +7,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 import linereg
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -81,9 +83,9 @@ def test_lazy_attribute_error_names_the_attribute():
 
 def _declared() -> dict[str, set[str]]:
     """Normalised distribution names of the base dependencies (``""``) and of each extra."""
-    import tomllib
-
     from packaging.requirements import Requirement
+
+    tomllib = pytest.importorskip("tomllib")  # Python 3.11+
 
     project = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]
     groups = {"": project["dependencies"], **project["optional-dependencies"]}

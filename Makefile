@@ -5,7 +5,7 @@ PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 
 .DEFAULT_GOAL := help
-.PHONY: help setup test test-full lint train train-full
+.PHONY: help setup test test-full wheel-smoke lint train train-full
 
 help:  ## list the targets
 	@grep -E '^[a-z-]+:.*##' $(MAKEFILE_LIST) | awk -F':.*## ' '{printf "  make %-10s %s\n", $$1, $$2}'
@@ -19,13 +19,16 @@ $(STAMP): pyproject.toml scripts/ensure_system_deps.sh | $(PY)
 	bash scripts/ensure_system_deps.sh
 	$(PY) -m pip install --quiet --upgrade pip
 	$(PY) -m pip install --quiet torch==2.13.0
-	$(PY) -m pip install --quiet -e '.[dev,baselines,cluster]'
+	$(PY) -m pip install --quiet -e '.[dev,train,baselines,cluster]'
 	touch $(STAMP)
 
 setup: $(STAMP)  ## create .venv and install everything (idempotent)
 
 test: setup  ## run the test suite (skips tests marked slow)
 	$(PY) -m pytest
+
+wheel-smoke: setup  ## build the wheel, install it into a throwaway venv, use it from outside the repo
+	PY=$(PY) bash .ci/wheel_smoke.sh
 
 test-full: setup  ## run every test, the slow ones included
 	$(PY) -m pytest -m ''

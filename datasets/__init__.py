@@ -3,7 +3,7 @@
 Every dataset yields :class:`linereg.structures.PairSample` (numpy): float32 source/target
 clouds, normals (computed when the data has none), ``gt_transform`` mapping source to target
 (``tgt ≈ R @ src + t``) or ``None`` for unlabeled data, and metadata. Pairs are deterministic
-given ``(seed, index)``. :func:`datasets.collate.collate_pairs` batches them into a
+given ``(seed, index)``. :func:`linereg.datasets.collate.collate_pairs` batches them into a
 :class:`~linereg.structures.PairBatch`.
 
 Registered datasets (``DATASETS.names()``): ``procedural`` (default, no files), ``mesh_folder``,
@@ -18,14 +18,12 @@ from memory) and ``cache_workers`` (processes used to fill it; default all cores
 
 from __future__ import annotations
 
-import inspect
 from collections.abc import Mapping
 from typing import Any
 
-from omegaconf import DictConfig, OmegaConf
 from torch.utils.data import Dataset
 
-from datasets import (  # noqa: F401  (importing registers the builders)
+from linereg.datasets import (  # noqa: F401  (importing registers the builders)
     cache,
     combine,
     pairs_folder,
@@ -34,11 +32,13 @@ from datasets import (  # noqa: F401  (importing registers the builders)
     shape_sources,
     threedmatch,
 )
-from datasets.base import DATASETS, PairDataset, item_rng
-from datasets.cache import CachedPairs, materialize
-from datasets.collate import collate_pairs
+from linereg.datasets.base import DATASETS, PairDataset, item_rng
+from linereg.datasets.cache import CachedPairs, materialize
+from linereg.datasets.collate import collate_pairs
+from linereg.registry import plain
 
 __all__ = [
+    "CACHE_KEYS",
     "DATASETS",
     "CachedPairs",
     "PairDataset",
@@ -48,16 +48,7 @@ __all__ = [
     "materialize",
 ]
 
-_CACHE_KEYS = ("cache_dir", "cache_workers")
-
-
-def _plain_mapping(config: Any) -> dict[str, Any]:
-    """A plain dict from a mapping or an OmegaConf config (interpolations resolved)."""
-    if isinstance(config, DictConfig):
-        return OmegaConf.to_container(config, resolve=True)
-    if not isinstance(config, Mapping):
-        raise TypeError(f"dataset config must be a mapping {{name: ..., **kwargs}}, got {type(config).__name__}")
-    return dict(config)
+CACHE_KEYS = ("cache_dir", "cache_workers")
 
 
 def build_dataset(config: Mapping[str, Any]) -> Dataset:
@@ -72,30 +63,17 @@ def build_dataset(config: Mapping[str, Any]) -> Dataset:
 
     Raises:
         TypeError: ``config`` is not a mapping.
-        KeyError: unknown dataset name (the message lists registered names).
-        ValueError: missing ``name`` or keys the builder does not accept (listed).
+        linereg.registry.UnknownNameError: no or an unknown dataset name (lists the registered ones).
+        linereg.registry.ArgumentError: keys the builder does not accept, or required ones missing.
     """
-    config = _plain_mapping(config)
-    if "name" not in config:
-        raise ValueError(f"dataset config needs a 'name'; registered: {DATASETS.names()}")
-    name = config.pop("name")
-    builder = DATASETS.get(name)
-    cache_options = {key: config.pop(key) for key in _CACHE_KEYS if key in config}
-    parameters = [
-        p for p in inspect.signature(builder).parameters.values() if p.kind in (p.KEYWORD_ONLY, p.POSITIONAL_OR_KEYWORD)
-    ]
-    accepted = [p.name for p in parameters]
-    missing = [p.name for p in parameters if p.default is p.empty and p.name not in config]
-    if missing:
-        raise ValueError(f"dataset {name!r} needs key(s) {missing}")
-    unknown = sorted(set(config) - set(accepted))
-    if unknown:
-        raise ValueError(
-            f"unknown key(s) {unknown} for dataset {name!r}; accepted: {sorted([*accepted, *_CACHE_KEYS])}"
-        )
-    dataset = builder(**config)
+    config = plain(config)
+    if not isinstance(config, Mapping):
+        raise TypeError(f"dataset config must be a mapping {{name: ..., **kwargs}}, got {type(config).__name__}")
+    config = dict(config)
+    cache_options = {key: config.pop(key) for key in CACHE_KEYS if key in config}
+    dataset = DATASETS.build(config)
     if cache_options.get("cache_dir") is not None:
         if not isinstance(dataset, PairDataset):
-            raise ValueError(f"dataset {name!r} is already a cache; drop 'cache_dir'")
+            raise ValueError(f"dataset {config['name']!r} is already a cache; drop 'cache_dir'")
         return materialize(dataset, cache_options["cache_dir"], workers=cache_options.get("cache_workers"))
     return dataset

@@ -37,7 +37,7 @@ import torch
 from torch.utils.data import Dataset
 from tqdm import tqdm
 
-from datasets.base import DATASETS, PairDataset
+from linereg.datasets.base import DATASETS, PairDataset
 from linereg.structures import PairSample
 
 FORMAT_VERSION = 1

@@ -18,8 +18,8 @@ from collections.abc import Sequence
 import numpy as np
 import torch
 
-from datasets.base import item_rng
-from datasets.protocol import subsample
+from linereg.datasets.base import item_rng
+from linereg.datasets.protocol import subsample
 from linereg.structures import PairBatch, PairSample
 
 _COLLATE_STREAM = 13

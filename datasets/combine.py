@@ -14,7 +14,7 @@ from typing import Any
 
 import numpy as np
 
-from datasets.base import DATASETS, PairDataset
+from linereg.datasets.base import DATASETS, PairDataset
 from linereg.structures import PairSample
 
 SPLITS = ("train", "test", "all")
@@ -89,7 +89,7 @@ def build_concat(
     split_seed: int = 0,
 ) -> ConcatPairs:
     """Concatenate dataset configs (each ``{name: ..., **kwargs}``) and take a split."""
-    from datasets import build_dataset
+    from linereg.datasets import build_dataset
 
     parts = [build_dataset(config) for config in datasets]
     uncached = [p for p in parts if not isinstance(p, PairDataset)]

@@ -11,8 +11,8 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
-from datasets.base import DATASETS, PairDataset, item_rng
-from datasets.protocol import ScanSettings, finish_scan_pair
+from linereg.datasets.base import DATASETS, PairDataset, item_rng
+from linereg.datasets.protocol import ScanSettings, finish_scan_pair
 from linereg.io import POINT_CLOUD_SUFFIXES, read_point_cloud, read_transform
 from linereg.structures import PairSample
 

@@ -4,7 +4,7 @@ Each shape glues 3-6 primitives (boxes, ellipsoids, cylinders, cones, tori, caps
 random size and orientation, every new part centred on the surface of an earlier one, so the
 union is connected and, with probability one, has no rotational symmetry: registration is
 well posed. Shapes are plain ``trimesh`` meshes, so they go through the same ray-casting
-partial-view path as real meshes (:mod:`datasets.protocol`).
+partial-view path as real meshes (:mod:`linereg.datasets.protocol`).
 """
 
 from __future__ import annotations
@@ -16,9 +16,9 @@ import numpy as np
 import torch
 import trimesh
 
-from datasets.base import DATASETS, item_rng
-from datasets.protocol import Shape, build_protocol
-from datasets.shape_pairs import ShapePairDataset
+from linereg.datasets.base import DATASETS, item_rng
+from linereg.datasets.protocol import Shape, build_protocol
+from linereg.datasets.shape_pairs import ShapePairDataset
 from linereg.random_poses import random_rotation
 
 PRIMITIVE_KINDS = ("box", "ellipsoid", "cylinder", "cone", "torus", "capsule")
@@ -165,7 +165,7 @@ def build_procedural(
     Args:
         split: ``"train"``, ``"val"`` or ``"test"`` (disjoint shapes).
         num_shapes: shapes in the split (default 100 train, 20 val/test).
-        protocol: pair protocol preset or mapping (see :func:`datasets.protocol.build_protocol`).
+        protocol: pair protocol preset or mapping (see :func:`linereg.datasets.protocol.build_protocol`).
         seed: base seed of shapes and pairs.
         min_parts: fewest primitives per shape.
         max_parts: most primitives per shape.

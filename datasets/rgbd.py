@@ -32,8 +32,8 @@ from typing import Any
 import numpy as np
 import torch
 
-from datasets.base import DATASETS, PairDataset, item_rng
-from datasets.formats import (
+from linereg.datasets.base import DATASETS, PairDataset, item_rng
+from linereg.datasets.formats import (
     Intrinsics,
     read_association_list,
     read_depth_image,
@@ -42,7 +42,7 @@ from datasets.formats import (
     read_pose_list,
     read_pose_matrix,
 )
-from datasets.protocol import ScanSettings, finish_scan_pair
+from linereg.datasets.protocol import ScanSettings, finish_scan_pair
 from linereg.se3 import compose, inverse
 from linereg.structures import PairSample
 

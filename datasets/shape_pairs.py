@@ -6,8 +6,8 @@ from collections import OrderedDict
 from collections.abc import Sequence
 from typing import Any, Protocol
 
-from datasets.base import PairDataset, item_rng
-from datasets.protocol import CropProtocol, Shape, ShapeViews, ViewProtocol, protocol_settings
+from linereg.datasets.base import PairDataset, item_rng
+from linereg.datasets.protocol import CropProtocol, Shape, ShapeViews, ViewProtocol, protocol_settings
 from linereg.structures import PairSample
 
 _PAIR_STREAM = 11
@@ -33,7 +33,7 @@ class ShapePairDataset(PairDataset):
 
     Args:
         shapes: the shape source.
-        protocol: pair protocol (see :mod:`datasets.protocol`).
+        protocol: pair protocol (see :mod:`linereg.datasets.protocol`).
         seed: base seed; pair ``index`` uses the generator ``(seed, split, index)``.
         name: registry name recorded in metadata and cache folder names.
         shape_cache_size: renderers kept per process.

@@ -1,6 +1,6 @@
 """Complete-shape sources on disk: any folder of meshes, and ModelNet40 (text or HDF5).
 
-Both feed :class:`~datasets.shape_pairs.ShapePairDataset` with a pair protocol, exactly like
+Both feed :class:`~linereg.datasets.shape_pairs.ShapePairDataset` with a pair protocol, exactly like
 the procedural shapes.
 
 Splits: ``split="all"`` keeps everything; ``"train"`` / ``"test"`` follow ``split_rule``:
@@ -25,9 +25,9 @@ from typing import Any
 
 import numpy as np
 
-from datasets.base import DATASETS
-from datasets.protocol import Shape, build_protocol
-from datasets.shape_pairs import ShapePairDataset
+from linereg.datasets.base import DATASETS
+from linereg.datasets.protocol import Shape, build_protocol
+from linereg.datasets.shape_pairs import ShapePairDataset
 from linereg.io import MESH_SUFFIXES, read_mesh, read_point_cloud
 
 SPLITS = ("train", "test", "all")

@@ -16,9 +16,9 @@ from typing import Any
 
 import numpy as np
 
-from datasets.base import DATASETS, PairDataset, item_rng
-from datasets.formats import read_log, read_overlap_log
-from datasets.protocol import ScanSettings, finish_scan_pair
+from linereg.datasets.base import DATASETS, PairDataset, item_rng
+from linereg.datasets.formats import read_log, read_overlap_log
+from linereg.datasets.protocol import ScanSettings, finish_scan_pair
 from linereg.io import read_point_cloud
 from linereg.structures import PairSample
 

@@ -1,4 +1,10 @@
-"""linereg core: geometry shared by every layer (SE(3) maths, Procrustes, kNN/FPS, metrics, I/O).
+"""linereg: unsupervised rigid point-cloud registration with the line-intersection loss.
+
+The core modules (``linereg.se3``, ``linereg.procrustes``, ``linereg.pointcloud``,
+``linereg.metrics``, ``linereg.io``, ...) hold the geometry shared by every layer; the
+subpackages ``linereg.losses``, ``linereg.models``, ``linereg.datasets``,
+``linereg.registration`` and ``linereg.train`` build on them. :func:`register` aligns two
+clouds (imported on first use, so ``import linereg`` does not load torch).
 
 Conventions, stated once for the whole project:
 
@@ -10,4 +16,27 @@ Conventions, stated once for the whole project:
   where documented.
 """
 
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
 __version__ = "0.1.0"
+__all__ = ["RegistrationResult", "__version__", "register"]
+
+# In a source checkout the subpackages live in top-level folders (losses/, models/, ...) next to
+# this one; the wheel maps them into linereg/. Make them importable as linereg.<name> from the
+# checkout too, without putting the top-level names on sys.path as packages of their own.
+_CHECKOUT = Path(__file__).resolve().parent.parent
+if not (Path(__file__).resolve().parent / "losses").is_dir() and (_CHECKOUT / "losses" / "__init__.py").is_file():
+    __path__.append(str(_CHECKOUT))
+
+_LAZY = {"register": "linereg.registration.api", "RegistrationResult": "linereg.registration.api"}
+
+
+def __getattr__(name: str) -> Any:
+    if name in _LAZY:
+        import importlib
+
+        return getattr(importlib.import_module(_LAZY[name]), name)
+    raise AttributeError(f"module 'linereg' has no attribute {name!r}")

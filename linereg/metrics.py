@@ -14,7 +14,7 @@ l2 pointwise error is below ``alpha``.
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 
 import numpy as np
 import torch
@@ -24,6 +24,7 @@ from linereg.se3 import matrix_to_rt, rotation_angle, transform_points
 
 NORMS = ("l1", "l2")
 ERROR_KEYS = ("err_r_deg", "err_t_l1", "err_t_l2", "err_pw_l1", "err_pw_l2")
+SUCCESS_THRESHOLDS_DEG = (1.0, 5.0)
 
 
 def _vector_norm(vectors: torch.Tensor, norm: str) -> torch.Tensor:
@@ -188,6 +189,35 @@ def summarize(errors: Mapping[str, torch.Tensor | np.ndarray]) -> dict[str, floa
         summary[f"{name}_mean"] = float(array.mean())
         summary[f"{name}_median"] = float(np.median(array))
     return summary
+
+
+def aggregate_errors(
+    errors: Mapping[str, torch.Tensor | np.ndarray],
+    *,
+    alphas: Sequence[float] = (),
+    success_deg: Sequence[float] = (),
+) -> dict[str, float]:
+    """Everything a results table reports about per-pair errors ``{name: (P,)}``.
+
+    Args:
+        errors: per-pair errors (``err_pw_l2`` needed for ``alphas``, ``err_r_deg`` for
+            ``success_deg``); other columns (e.g. ``seconds``) are summarised too.
+        alphas: alpha-recall thresholds: ``recall@<alpha>`` (fraction with ``err_pw_l2 < alpha``).
+        success_deg: rotation thresholds: ``success_<t>deg`` (fraction with ``err_r_deg < t``).
+
+    Returns:
+        :func:`summarize`'s means and medians, ``pairs`` when ``success_deg`` is given, the recalls
+        and the success rates, as floats.
+    """
+    values = summarize(errors)
+    if alphas:
+        recall = alpha_recall(errors["err_pw_l2"], list(alphas))
+        values.update({f"recall@{alpha:g}": float(r) for alpha, r in zip(alphas, recall, strict=True)})
+    if success_deg:
+        rotation = torch.as_tensor(errors["err_r_deg"]).detach().cpu().double().numpy()
+        values["pairs"] = len(rotation)
+        values.update({f"success_{t:g}deg": float(np.mean(rotation < t)) for t in success_deg})
+    return values
 
 
 def paper_table(rows: Mapping[str, Mapping[str, float]], stat: str = "mean") -> str:

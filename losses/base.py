@@ -7,12 +7,14 @@ Every loss maps ``(RegistrationOutput, PairBatch) -> LossOutput``. A loss declar
 
 from __future__ import annotations
 
+import warnings
+from collections.abc import Mapping
 from typing import Any
 
 import torch
 from torch import nn
 
-from linereg.registry import Registry
+from linereg.registry import ArgumentError, Registry, plain
 from linereg.se3 import transform_points
 from linereg.structures import LossOutput, PairBatch, RegistrationOutput
 
@@ -120,31 +122,50 @@ class WeightedSum(Loss):
         return LossOutput(total=total, terms=terms, stats=stats)
 
 
-def build_loss(config: dict[str, Any] | Any) -> Loss:
-    """Build a loss from a config mapping.
+def _is_handle(value: Any) -> bool:
+    """Whether a loss-config value may serve as a handle: a scalar or null."""
+    return value is None or isinstance(value, bool | int | float | str)
 
-    Either ``{name: <registered name>, **kwargs}`` or a composite
-    ``{terms: {label: {name: ..., weight: w, **kwargs}, ...}}``. Unknown names raise a
-    ``KeyError`` that lists the registered losses; unknown keyword arguments raise ``TypeError``
-    naming the loss.
+
+def build_loss(config: Mapping[str, Any]) -> Loss:
+    """Build a loss from a config: a mapping or an OmegaConf config (``configs/loss/``).
+
+    Either a single loss ``{name: <registered name>, **kwargs}`` or a weighted sum
+    ``{terms: {label: {name, weight, **kwargs}}, **handles}``. Handles are top-level scalars
+    that terms reference by interpolation (``nu0: ${loss.nu0}``), so that sweeps can write
+    ``loss.nu0=...`` whatever the term is called; they are not passed to the builder. A handle
+    set to a value but referenced by no term of an OmegaConf config gets a warning (it would
+    change nothing).
+
+    Raises:
+        linereg.registry.UnknownNameError: an unknown loss name (lists the registered losses).
+        linereg.registry.ArgumentError: unknown arguments of a loss, or a non-scalar key next
+            to ``terms``.
     """
-    config = dict(config)
-    if "terms" in config:
-        extra = set(config) - {"terms"}
-        if extra:
-            raise TypeError(f"a composite loss config takes only 'terms', got extra keys {sorted(extra)}")
-        parts = {}
-        for label, sub in dict(config["terms"]).items():
-            sub = dict(sub)
-            weight = float(sub.pop("weight", 1.0))
-            parts[label] = (weight, build_loss(sub))
-        return WeightedSum(parts)
-    if "name" not in config:
-        raise KeyError(f"a loss config needs a 'name' (one of {', '.join(LOSSES.names())}) or 'terms'")
-    name = config.pop("name")
-    config.pop("weight", None)
-    builder = LOSSES.get(name)
-    try:
-        return builder(**config)
-    except TypeError as err:
-        raise TypeError(f"loss {name!r}: {err}") from err
+    resolved = dict(plain(config))
+    if "terms" not in resolved:
+        resolved.pop("weight", None)
+        return LOSSES.build(resolved)
+    handles = {key: value for key, value in resolved.items() if key != "terms"}
+    structured = sorted(key for key, value in handles.items() if not _is_handle(value))
+    if structured:
+        raise ArgumentError(
+            f"loss config: unknown key(s) {structured} next to 'terms' (only scalar handles such as nu0 may "
+            "sit there; put loss arguments inside a term)"
+        )
+    if type(config).__module__.startswith("omegaconf"):
+        from omegaconf import OmegaConf
+
+        referenced = repr(OmegaConf.to_container(config, resolve=False)["terms"])
+        names = ", ".join(f"{label}: {term.get('name')}" for label, term in resolved["terms"].items())
+        for key, value in handles.items():
+            if value is not None and "${loss." + key + "}" not in referenced:
+                warnings.warn(
+                    f"loss.{key}={value!r} has no effect: no term of this loss ({names}) uses it", stacklevel=2
+                )
+    parts = {}
+    for label, term in resolved["terms"].items():
+        term = dict(term)
+        weight = float(term.pop("weight", 1.0))
+        parts[label] = (weight, build_loss(term))
+    return WeightedSum(parts)

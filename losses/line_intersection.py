@@ -1,7 +1,7 @@
 """The line-intersection metric of Deng et al., "A Robust Loss for Point Cloud Registration"
 (ICCV 2021), §3.2 — sparse, batched, differentiable w.r.t. the source points.
 
-For ``L`` random lines ``l`` (see :mod:`losses.lines`):
+For ``L`` random lines ``l`` (see :mod:`linereg.losses.lines`):
 
 1. **Intersections.** Points within ``delta = delta_factor * d_nei`` of the line are candidates
    (``d_nei``: mean distance to the ``k`` nearest neighbours, per cloud). A candidate ``p0``
@@ -17,9 +17,9 @@ For ``L`` random lines ``l`` (see :mod:`losses.lines`):
 
 Steps 1 and 2 only choose indices and detached weights; torch gathers the points, so memory
 is linear in ``N + L`` and the backward pass is a sparse scatter. Two backends choose them
-(``backend`` option): ``numba`` (:mod:`losses.line_kernels`, a compiled grid walk that only
+(``backend`` option): ``numba`` (:mod:`linereg.losses.line_kernels`, a compiled grid walk that only
 examines point-line pairs that can interact, on the CPU, threads across samples and lines) and
-``torch`` (:mod:`losses.line_torch`, an all-pairs test in chunks on the tensors' device, batched,
+``torch`` (:mod:`linereg.losses.line_torch`, an all-pairs test in chunks on the tensors' device, batched,
 no per-sample host round trip). ``auto`` (default) takes ``torch`` for tensors on an accelerator
 and ``numba`` on the CPU. For the same lines both give the same value and gradient up to float
 rounding. Half-precision inputs are evaluated in float32.

@@ -1,6 +1,6 @@
 """Device-native (pure torch) index search of the line-intersection metric.
 
-The twin of :mod:`losses.line_kernels` for any device: the same candidate test, neighbour test,
+The twin of :mod:`linereg.losses.line_kernels` for any device: the same candidate test, neighbour test,
 convex or barycentric weights and closest-point matching, batched over ``B`` samples with
 padding masks, and never a per-sample host round trip (a few syncs per batch remain where a
 result size is data dependent: ``nonzero``, ``repeat_interleave``).
@@ -81,7 +81,7 @@ def _line_distance(points: torch.Tensor, origins: torch.Tensor, dirs: torch.Tens
 
 def _pierce_weights(tri: torch.Tensor, origins: torch.Tensor, dirs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """Barycentric weights ``(H, 3)`` where each line pierces its triangle ``tri (H, 3, 3)``
-    (Moller-Trumbore, as :func:`losses.line_kernels._pierce_weights`) and ``(H,)`` validity."""
+    (Moller-Trumbore, as :func:`linereg.losses.line_kernels._pierce_weights`) and ``(H,)`` validity."""
     a, b, c = tri.unbind(1)
     e1, e2 = b - a, c - a
     p = torch.cross(dirs, e2, dim=-1)
@@ -211,7 +211,7 @@ def match_along_lines(
     keep: torch.Tensor,
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
     """Closest-point matching both ways on each kept line (the twin of
-    :func:`losses.line_kernels.match_along_lines`).
+    :func:`linereg.losses.line_kernels.match_along_lines`).
 
     Returns:
         ``src_index (P,)``, ``tgt_index (P,)``, ``line (P,)`` and ``is_row (P,)`` (True for

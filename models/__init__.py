@@ -1,49 +1,37 @@
-"""Registration models and their registry (timm style).
+"""Registration models and their registry.
 
 Every model maps a :class:`linereg.structures.PairBatch` to a
-:class:`linereg.structures.RegistrationOutput`. Importing this package registers the builders
-``dcp_v1``, ``dcp_v2``, ``rpmnet`` and ``fmr``; :func:`build_model` creates one from a config
-mapping ``{name: ..., **kwargs}``.
+:class:`linereg.structures.RegistrationOutput`. Importing this package registers ``dcp_v1``,
+``dcp_v2``, ``rpmnet`` and ``fmr`` in :data:`MODELS`; ``MODELS.build({name: ..., **kwargs})``
+creates one, :func:`load_model` restores a trained one from a checkpoint of ``python -m train``.
 """
 
 from __future__ import annotations
 
-import inspect
-from collections.abc import Mapping
+from pathlib import Path
 from typing import Any
 
+import torch
 from torch import nn
 
-from linereg.registry import Registry
+from linereg.checkpoint import load_checkpoint
+from linereg.models import dcp, fmr, rpmnet
+from linereg.models.base import MODELS
 
-MODELS: Registry[nn.Module] = Registry("model")
-
-# Imported after MODELS exists: each module registers its builders on import.
-from . import dcp, fmr, rpmnet  # noqa: E402
-
-__all__ = ["MODELS", "build_model", "dcp", "fmr", "list_models", "rpmnet"]
+__all__ = ["MODELS", "dcp", "fmr", "load_model", "rpmnet"]
 
 
-def build_model(config: Mapping[str, Any]) -> nn.Module:
-    """Build a registered model from ``{name: <registered name>, **kwargs}``.
+def load_model(path: str | Path, device: str | torch.device = "cpu") -> tuple[nn.Module, dict[str, Any]]:
+    """The model of a checkpoint, rebuilt from its stored config, in evaluation mode.
 
-    Raises:
-        KeyError: no ``name``, or an unknown one (the message lists the registered models).
-        TypeError: a keyword argument the model's builder does not accept (the message names
-            the model and lists the accepted arguments).
+    Args:
+        path: checkpoint file or run folder (``best.pt`` preferred).
+        device: where to put the model.
+
+    Returns:
+        ``(model, checkpoint)``; ``checkpoint["config"]`` is the run's resolved config.
     """
-    options = dict(config)
-    if "name" not in options:
-        raise KeyError(f"a model config needs a 'name', one of {', '.join(MODELS.names())}")
-    name = options.pop("name")
-    builder = MODELS.get(name)
-    accepted = inspect.signature(builder).parameters
-    unknown = sorted(set(options) - set(accepted))
-    if unknown:
-        raise TypeError(f"model {name!r} got unknown argument(s) {unknown}; it accepts {sorted(accepted)}")
-    return builder(**options)
-
-
-def list_models(pattern: str = "*") -> list[str]:
-    """Sorted names of the registered models matching a shell-style wildcard ``pattern``."""
-    return MODELS.names(pattern)
+    state = load_checkpoint(path)
+    model = MODELS.build(state["config"]["model"])
+    model.load_state_dict(state["model"])
+    return model.to(device).eval(), state

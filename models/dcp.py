@@ -18,11 +18,11 @@ import math
 import torch
 from torch import nn
 
+from linereg.models.base import MODELS
 from linereg.pointcloud import knn
 from linereg.se3 import inverse
 from linereg.structures import PairBatch, RegistrationOutput
 
-from . import MODELS
 from .blocks import (
     NormKind,
     check_norm_kind,

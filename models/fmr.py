@@ -25,10 +25,10 @@ import warnings
 import torch
 from torch import nn
 
+from linereg.models.base import MODELS
 from linereg.se3 import rt_to_matrix, se3_exp, transform_points
 from linereg.structures import PairBatch, RegistrationOutput
 
-from . import MODELS
 from .blocks import NormKind, check_norm_kind, check_pair_batch, resolve_groups, shared_mlp
 
 ENCODER_WIDTHS = (64, 64, 64, 128)

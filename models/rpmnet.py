@@ -42,11 +42,11 @@ import torch.nn.functional as F
 from torch import nn
 from torch.utils.checkpoint import checkpoint as recompute_in_backward
 
+from linereg.models.base import MODELS
 from linereg.pointcloud import knn
 from linereg.se3 import transform_normals, transform_points
 from linereg.structures import PairBatch, RegistrationOutput
 
-from . import MODELS
 from .blocks import (
     NormKind,
     check_pair_batch,

@@ -31,7 +31,7 @@ if str(REPO_ROOT) not in sys.path:
 import torch  # noqa: E402
 from torch.utils.data import DataLoader  # noqa: E402
 
-from datasets import build_dataset, collate_pairs, materialize  # noqa: E402
+from linereg.datasets import build_dataset, collate_pairs, materialize  # noqa: E402
 from linereg.paths import shared_data_dir  # noqa: E402
 
 VIEWS = 18

@@ -20,9 +20,9 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from linereg.metrics import registration_errors
+from linereg.registration.solvers import AdamRegistration
 from linereg.se3 import euler_to_rotmat, rt_to_matrix, transform_points
 from scripts.bench_loss import surface
-from train.solvers import AdamRegistration
 
 POSES = {
     "small (5 deg)": ([5.0, 3.0, -4.0], [0.05, -0.03, 0.02]),

@@ -47,9 +47,9 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
+from linereg.losses.line_intersection import LineMetricOptions, line_intersection_metric
+from linereg.losses.lines import sample_lines
 from linereg.se3 import euler_to_rotmat, rt_to_matrix, transform_points
-from losses.line_intersection import LineMetricOptions, line_intersection_metric
-from losses.lines import sample_lines
 from tests.line_reference import dense_line_metric
 
 PAGE_MB = os.sysconf("SC_PAGE_SIZE") / 2**20

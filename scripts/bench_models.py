@@ -39,12 +39,12 @@ import torch.nn.functional as F
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-import losses.supervised  # noqa: F401  (registers the supervised losses)
+import linereg.losses.supervised  # noqa: F401  (registers the supervised losses)
+from linereg.losses.base import build_loss
+from linereg.models import MODELS
 from linereg.random_poses import random_transform_paper
 from linereg.se3 import transform_normals, transform_points
 from linereg.structures import PairBatch
-from losses.base import build_loss
-from models import build_model, list_models
 
 SUPERVISED_LOSS = {"dcp_v1": "gt_dcp", "dcp_v2": "gt_dcp", "rpmnet": "gt_rpmnet", "fmr": "gt_fmr"}
 PAGE_MB = os.sysconf("SC_PAGE_SIZE") / 2**20
@@ -169,7 +169,7 @@ def main() -> None:
     parser.add_argument("--device", default="cpu", help="cpu or cuda[:index]")
     parser.add_argument("--points", type=int, default=1024)
     parser.add_argument("--batch-sizes", type=int, nargs="+", default=[1, 4])
-    parser.add_argument("--models", nargs="+", default=list_models(), choices=list_models())
+    parser.add_argument("--models", nargs="+", default=MODELS.names(), choices=MODELS.names())
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--threads", type=int, default=None, help="torch intra-op threads")
     parser.add_argument("--set", nargs="*", default=[], dest="overrides", metavar="M.ARG=V")
@@ -190,7 +190,7 @@ def main() -> None:
     print("| --- | --- | --- | --- | --- | --- | --- |")
     for name in args.models:
         torch.manual_seed(0)
-        model = build_model({"name": name, **overrides.get(name, {})}).to(device)
+        model = MODELS.build({"name": name, **overrides.get(name, {})}).to(device)
         loss = build_loss({"name": SUPERVISED_LOSS[name]})
         parameters = sum(p.numel() for p in model.parameters())
         for batch_size in args.batch_sizes:

@@ -3,7 +3,7 @@
     python scripts/bench_register.py                 # 5 partial-vs-whole airplane pairs, 1024 vs 2048 points
     python scripts/bench_register.py --pairs 10 --commands 3 --json
 
-Pairs: :mod:`datasets.partial_vs_whole` on the ModelNet40 airplanes of the shared data (source a
+Pairs: :mod:`linereg.datasets.partial_vs_whole` on the ModelNet40 airplanes of the shared data (source a
 hidden-point-removal view of 1024 points, target 2048 points of the whole shape). In one run,
 first on the machine as it is ("quiet"), then again while this script keeps one extra
 CPU-bound process spinning ("busy core"), it measures
@@ -35,13 +35,13 @@ sys.path.insert(0, str(ROOT))
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
-import train.baselines  # noqa: E402  (registers icp_point)
-import train.solvers  # noqa: E402,F401  (registers robust)
-from datasets.partial_vs_whole import partial_vs_whole_pairs  # noqa: E402
+import linereg.registration.baselines  # noqa: E402  (registers icp_point)
+import linereg.registration.solvers  # noqa: E402,F401  (registers robust)
+from linereg.datasets.partial_vs_whole import partial_vs_whole_pairs  # noqa: E402
 from linereg.io import write_point_cloud  # noqa: E402
 from linereg.metrics import rotation_error_deg  # noqa: E402
 from linereg.paths import shared_data_dir  # noqa: E402
-from train.methods import build_method  # noqa: E402
+from linereg.registration import METHODS  # noqa: E402
 
 
 def _spin() -> None:
@@ -75,8 +75,8 @@ def _wall(command: list[str], cwd: Path, repeats: int) -> float:
 
 def measure(pairs, folder: Path, commands: int) -> dict[str, float]:
     """One row: solver, ICP and command times (medians) and their ratios."""
-    robust, robust_err = _solver_times(build_method({"name": "robust"}), pairs)
-    icp, icp_err = _solver_times(build_method({"name": "icp_point"}), pairs)
+    robust, robust_err = _solver_times(METHODS.build({"name": "robust"}), pairs)
+    icp, icp_err = _solver_times(METHODS.build({"name": "icp_point"}), pairs)
     register = [sys.executable, "-m", "train.register", "source=src.ply", "target=tgt.ply", "progress=false"]
     command = _wall(register, folder, commands)
     floor = _wall([sys.executable, "-c", "import torch"], folder, commands)

@@ -3,7 +3,7 @@
     python scripts/check_selection.py outputs/benchmark/partial_vs_whole/<run>/results.json
 
 For every pair of the run (rebuilt from its settings) and every method whose pose ended more than
-``--wrong-deg`` off, compare :func:`train.solvers.fixed_scale_fit` (the cost that picks the best
+``--wrong-deg`` off, compare :func:`linereg.registration.solvers.fixed_scale_fit` (the cost that picks the best
 start, computed as the solver does: both clouds centred and scaled into the unit ball) at the
 ground truth and at that wrong pose. The selection can only go wrong where a wrong pose costs less.
 """
@@ -20,9 +20,9 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from train.benchmark import build_pairs
-from train.methods import translation
-from train.solvers import DEFAULT_ROBUST, NearestTarget, fixed_scale_fit
+from linereg.datasets.benchmark_pairs import select_pairs
+from linereg.registration.methods import translation
+from linereg.registration.solvers import DEFAULT_ROBUST, NearestTarget, fixed_scale_fit
 
 
 def _solver_frame(transform: np.ndarray, src: np.ndarray, tgt: np.ndarray) -> tuple[np.ndarray, float]:
@@ -41,7 +41,7 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     content = json.loads(args.results.read_text())
     settings = content["settings"]
-    pairs = build_pairs(settings["benchmark"], pairs=settings.get("pairs"), seed=int(settings.get("seed", 0)))
+    pairs = select_pairs(settings["benchmark"], pairs=settings.get("pairs"), seed=int(settings.get("seed", 0)))
     wrong, ranked_right = 0, 0
     margins = []
     for record in content["records"]:

@@ -3,7 +3,7 @@
     python scripts/loss_at_gt.py outputs/reproduce/real/rpm_ours_s1     # a training run's test pairs
     python scripts/loss_at_gt.py <run> --split val --lines 5000
 
-For every pair of the run's split (:func:`train.benchmark.run_pairs`) and every loss below, counts
+For every pair of the run's split (:func:`linereg.datasets.benchmark_pairs.run_pairs`) and every loss below, counts
 the pairs on which the loss is lower with the source moved by the ground truth than left where it
 is. A loss that is not lower at the ground truth cannot teach a network the right pose.
 """
@@ -18,9 +18,9 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
+from linereg.datasets.benchmark_pairs import run_pairs
+from linereg.losses import build_loss
 from linereg.se3 import transform_points
-from losses import build_loss
-from train.benchmark import run_pairs
 
 
 def main(argv: list[str] | None = None) -> int:

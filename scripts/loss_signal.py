@@ -35,8 +35,8 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
+from linereg.losses import build_loss
 from linereg.se3 import compose, inverse, se3_exp, se3_log, transform_points
-from losses import build_loss
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -70,8 +70,8 @@ def protocol_pairs(protocol: str, split: str, num_points: int, pairs: int, seed:
     from hydra.core.hydra_config import HydraConfig
     from omegaconf import OmegaConf
 
-    from train.benchmark import select_indices
-    from train.curriculum import build_split
+    from linereg.datasets.benchmark_pairs import select_indices
+    from linereg.datasets.splits import build_split
 
     overrides = [
         "experiment=rpm_gt",

@@ -33,7 +33,7 @@ REPO_ROOT = Path(__file__).resolve().parent.parent
 if str(REPO_ROOT) not in sys.path:
     sys.path.insert(0, str(REPO_ROOT))
 
-from datasets import build_dataset, materialize  # noqa: E402
+from linereg.datasets import build_dataset, materialize  # noqa: E402
 
 PAPER_AIRPLANE_SHAPES = 625
 PAPER_AIRPLANE_TRAIN_FRACTION = 500 / 625

@@ -11,7 +11,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from losses.line_intersection import LineMetricOptions
+from linereg.losses.line_intersection import LineMetricOptions
 
 
 def _cloud_setup(points: torch.Tensor, options: LineMetricOptions) -> tuple[torch.Tensor, torch.Tensor]:

@@ -7,11 +7,11 @@ import pytest
 import torch
 import trimesh
 
-from datasets.procedural import procedural_shape
+from linereg.datasets.procedural import procedural_shape
 from linereg.metrics import registration_errors
+from linereg.registration import METHODS
+from linereg.registration.baselines import FRICP_VARIANTS, diameter
 from linereg.se3 import rt_to_matrix, so3_exp
-from train.baselines import FRICP_VARIANTS, diameter
-from train.methods import METHODS, build_method
 
 BASELINES = ("icp_point", "icp_plane", "fgr", "fricp")
 
@@ -51,7 +51,7 @@ def test_recovers_a_small_transform(name, shape_points):
     truth = _transform(12.0, [1.0, 2.0, -1.0], [0.3, -0.1, 0.2])
     target = _apply(truth, shape_points)
 
-    result = build_method({"name": name})(shape_points, target)
+    result = METHODS.build({"name": name})(shape_points, target)
 
     errors = _errors(result.transform, truth, shape_points)
     assert errors["err_r_deg"] < 1.0
@@ -62,7 +62,7 @@ def test_recovers_a_small_transform(name, shape_points):
 
 @pytest.mark.parametrize("name", BASELINES)
 def test_identical_clouds_give_the_identity(name, shape_points):
-    result = build_method({"name": name})(shape_points, shape_points.copy())
+    result = METHODS.build({"name": name})(shape_points, shape_points.copy())
 
     np.testing.assert_allclose(result.transform, np.eye(4), atol=1e-6)
 
@@ -73,7 +73,7 @@ def test_icp_plane_uses_given_target_normals(shape_points):
     bad_normals = np.ones((len(shape_points) + 1, 3), dtype=np.float32)
 
     with pytest.raises(ValueError, match="normals must have the shape"):
-        build_method({"name": "icp_plane"})(shape_points, target, tgt_normals=bad_normals)
+        METHODS.build({"name": "icp_plane"})(shape_points, target, tgt_normals=bad_normals)
 
 
 def test_centering_removes_the_initial_offset(shape_points):
@@ -81,8 +81,8 @@ def test_centering_removes_the_initial_offset(shape_points):
     truth = _transform(5.0, [0.0, 0.0, 1.0], [offset, 0.0, 0.0])
     target = _apply(truth, shape_points)
 
-    centred = build_method({"name": "icp_point"})(shape_points, target)
-    uncentred = build_method({"name": "icp_point", "center": False})(shape_points, target)
+    centred = METHODS.build({"name": "icp_point"})(shape_points, target)
+    uncentred = METHODS.build({"name": "icp_point", "center": False})(shape_points, target)
 
     assert _errors(centred.transform, truth, shape_points)["err_r_deg"] < 1.0
     assert _errors(uncentred.transform, truth, shape_points)["err_t_l2"] > 0.5 * offset
@@ -91,7 +91,7 @@ def test_centering_removes_the_initial_offset(shape_points):
 @pytest.mark.parametrize("name", BASELINES)
 def test_empty_cloud_is_rejected(name, shape_points):
     with pytest.raises(ValueError, match="source must hold at least 1 point"):
-        build_method({"name": name})(np.zeros((0, 3), dtype=np.float32), shape_points)
+        METHODS.build({"name": name})(np.zeros((0, 3), dtype=np.float32), shape_points)
 
 
 @pytest.mark.parametrize("name", BASELINES)
@@ -100,7 +100,7 @@ def test_nan_coordinates_are_rejected(name, shape_points):
     target[3, 1] = np.nan
 
     with pytest.raises(ValueError, match="target contains NaN or Inf"):
-        build_method({"name": name})(shape_points, target)
+        METHODS.build({"name": name})(shape_points, target)
 
 
 @pytest.mark.parametrize(
@@ -116,13 +116,13 @@ def test_nan_coordinates_are_rejected(name, shape_points):
 )
 def test_bad_options_are_rejected(config, error, message):
     with pytest.raises(error, match=message):
-        build_method(config)
+        METHODS.build(config)
 
 
 @pytest.mark.parametrize("variant", [v for v in FRICP_VARIANTS if v != "RICP"])
 def test_fricp_variants_run(variant, shape_points):
     truth = _transform(6.0, [1.0, 0.0, 1.0], [0.02, 0.01, 0.0])
 
-    result = build_method({"name": "fricp", "variant": variant})(shape_points, _apply(truth, shape_points))
+    result = METHODS.build({"name": "fricp", "variant": variant})(shape_points, _apply(truth, shape_points))
 
     assert _errors(result.transform, truth, shape_points)["err_r_deg"] < 1.0

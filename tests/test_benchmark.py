@@ -14,26 +14,28 @@ import torch
 import trimesh
 from scipy.spatial import cKDTree
 
-from datasets.procedural import procedural_shape
+from linereg.datasets.benchmark_pairs import (
+    airplane_pairs,
+    dragon_pairs,
+    human_pairs,
+    select_indices,
+    threedmatch_pairs,
+)
+from linereg.datasets.procedural import procedural_shape
 from linereg.io import write_point_cloud, write_transform
 from linereg.metrics import ERROR_KEYS
 from linereg.paths import REPO_ROOT
 from linereg.random_poses import random_transform_paper
+from linereg.registration.methods import MethodResult
 from linereg.structures import PairSample
-from train.benchmark import (
-    airplane_pairs,
+from linereg.train.benchmark import (
     benchmark,
     build_methods,
-    dragon_pairs,
     expand_folder_argument,
-    human_pairs,
     object_diameter,
     run_benchmark,
-    select_indices,
-    threedmatch_pairs,
     write_results,
 )
-from train.methods import MethodResult
 
 RECORD_KEYS = {"pair", "method", "seconds", "diameter", "transform", "gt_transform", "meta", "info", *ERROR_KEYS}
 
@@ -284,7 +286,7 @@ def test_run_benchmark_resumes_from_its_journal(tmp_path):
 
 
 def test_partial_vs_whole_pairs_from_meshes_and_point_files(tmp_path):
-    from datasets.partial_vs_whole import PartialVsWholeSettings, partial_vs_whole_pairs
+    from linereg.datasets.partial_vs_whole import PartialVsWholeSettings, partial_vs_whole_pairs
 
     procedural_shape(np.random.default_rng(3)).export(tmp_path / "shape.off")
     points, _ = trimesh.sample.sample_surface(procedural_shape(np.random.default_rng(4)), 5000, seed=4)
@@ -312,9 +314,9 @@ def test_partial_vs_whole_pairs_from_meshes_and_point_files(tmp_path):
 @pytest.mark.shared_data
 def test_partial_vs_whole_source_on_the_shared_airplanes(shared_data):
     config = {"name": "partial_vs_whole", "root": "modelnet40_normal_resampled", "patterns": ["airplane/*.txt"]}
-    from train.benchmark import build_pairs
+    from linereg.datasets.benchmark_pairs import select_pairs
 
-    pairs = build_pairs(config, pairs=2, seed=0)
+    pairs = select_pairs(config, pairs=2, seed=0)
     assert [pair.src_xyz.shape for pair in pairs] == [(1024, 3)] * 2
     assert [pair.tgt_xyz.shape for pair in pairs] == [(2048, 3)] * 2
     assert all(np.abs(pair.tgt_xyz).max() <= 1.0 + 0.2 * np.sqrt(3) + 1e-5 for pair in pairs)

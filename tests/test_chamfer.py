@@ -7,10 +7,10 @@ import math
 import pytest
 import torch
 
+from linereg.losses import build_loss
+from linereg.losses.chamfer import chamfer_distance, chamfer_welsch_distance, welsch
 from linereg.se3 import rt_to_matrix
 from linereg.structures import PairBatch, RegistrationOutput
-from losses import build_loss
-from losses.chamfer import chamfer_distance, chamfer_welsch_distance, welsch
 
 
 def test_chamfer_on_a_hand_computed_case():

@@ -11,10 +11,12 @@ from hydra import compose, initialize_config_dir
 from hydra.errors import ConfigCompositionException
 from omegaconf import OmegaConf, open_dict
 
-from models import build_model
-from train.checkpoint import build_loss_from_config
-from train.curriculum import Curriculum, dataset_config
-from train.loop import TrainerSettings, build_optimizer, build_scheduler
+from linereg.datasets.splits import dataset_config
+from linereg.losses import build_loss
+from linereg.models import MODELS
+from linereg.train.curriculum import Curriculum
+from linereg.train.loop import TrainerSettings
+from linereg.train.optim import OPTIMIZERS, SCHEDULERS
 
 ROOT = Path(__file__).resolve().parent.parent
 CONFIGS = ROOT / "configs"
@@ -30,11 +32,11 @@ def compose_config(name: str = "train", overrides: list[str] | None = None):
 
 def build_components(cfg) -> None:
     """Build what a run builds before touching data: model, loss, optimizer, scheduler, ..."""
-    model = build_model(OmegaConf.to_container(cfg.model, resolve=True))
-    build_loss_from_config(cfg.loss)
-    optimizer = build_optimizer(model.parameters(), cfg.optimizer)
+    model = MODELS.build(OmegaConf.to_container(cfg.model, resolve=True))
+    build_loss(cfg.loss)
+    optimizer = OPTIMIZERS.build(cfg.optimizer, model.parameters())
     curriculum = Curriculum.from_config(cfg.curriculum)
-    build_scheduler(optimizer, cfg.scheduler, curriculum.stages[0].epochs)
+    SCHEDULERS.build(cfg.scheduler, optimizer, epochs=curriculum.stages[0].epochs)
     TrainerSettings.from_config(cfg.trainer)
     for split in ("train", "val", "test"):
         dataset_config(cfg.dataset, split)
@@ -104,12 +106,12 @@ def test_every_group_option_composes(group):
 def test_sweep_handle_on_a_loss_without_it_warns():
     cfg = compose_config(overrides=["experiment=rpm_cd", "loss.nu0=0.1"])
     with pytest.warns(UserWarning, match=r"loss.nu0=0.1 has no effect"):
-        build_loss_from_config(cfg.loss)
+        build_loss(cfg.loss)
 
 
 def test_sweep_handle_reaches_the_term():
     cfg = compose_config(overrides=["experiment=rpm_ours", "loss.nu0=2"])
-    loss = build_loss_from_config(cfg.loss)
+    loss = build_loss(cfg.loss)
     assert loss.parts["alignment"].options.nu0 == 2.0
 
 
@@ -130,16 +132,16 @@ def test_unknown_keys_in_config_files_give_clear_errors():
     with pytest.raises(ValueError, match=r"stage 'full': unknown key\(s\) \['epoch'\]"):
         Curriculum.from_config(cfg.curriculum)
     with pytest.raises(TypeError, match="num_line"):
-        build_loss_from_config(cfg.loss)
+        build_loss(cfg.loss)
     with pytest.raises(TypeError, match="neighbours"):
-        build_model(OmegaConf.to_container(cfg.model))
+        MODELS.build(OmegaConf.to_container(cfg.model))
 
 
 def test_optimizer_with_unknown_argument():
     with pytest.raises(TypeError, match=r"optimizer 'adam'.*momentum"):
-        build_optimizer([torch.nn.Parameter(torch.zeros(1))], {"name": "adam", "lr": 1e-3, "momentum": 0.9})
+        OPTIMIZERS.build({"name": "adam", "lr": 1e-3, "momentum": 0.9}, [torch.nn.Parameter(torch.zeros(1))])
     with pytest.raises(KeyError, match="registered: adam, adamw, sgd"):
-        build_optimizer([torch.nn.Parameter(torch.zeros(1))], {"name": "adagrad", "lr": 1e-3})
+        OPTIMIZERS.build({"name": "adagrad", "lr": 1e-3}, [torch.nn.Parameter(torch.zeros(1))])
 
 
 def test_hydra_sweep_folder_names_are_readable():
@@ -148,7 +150,7 @@ def test_hydra_sweep_folder_names_are_readable():
     sweep = OmegaConf.to_container(full.hydra.sweep, resolve=False)
     assert sweep["subdir"] == "${hydra.job.num}_${hydra.job.override_dirname}"
     assert full.hydra.job.config.override_dirname.kv_sep == "="
-    assert full.hydra.callbacks.sweep_summary._target_ == "train.summary.SweepSummary"
+    assert full.hydra.callbacks.sweep_summary._target_ == "linereg.train.summary.SweepSummary"
 
 
 @pytest.mark.skipif(importlib.util.find_spec("hydra_plugins.hydra_optuna_sweeper") is None, reason="no optuna sweeper")
@@ -199,7 +201,7 @@ def test_reproduce_scale_wins_over_the_experiment(reproduce, experiment):
 
 def test_reproduce_splits_on_the_shared_data(shared_data):
     """Pair counts of docs/results.md: held-out shapes, held-out views, a split in time."""
-    from datasets import build_dataset
+    from linereg.datasets import build_dataset
 
     expected = {"airplane": (864, 216), "human": (120, 30), "real": (190, 40)}
     for reproduce, counts in expected.items():

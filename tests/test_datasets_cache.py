@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 from omegaconf import OmegaConf
 
-from datasets import DATASETS, build_dataset
-from datasets.base import PairDataset
-from datasets.cache import MANIFEST, CachedPairs, CorruptCacheError, cache_path, materialize
+from linereg.datasets import DATASETS, build_dataset
+from linereg.datasets.base import PairDataset
+from linereg.datasets.cache import MANIFEST, CachedPairs, CorruptCacheError, cache_path, materialize
 from linereg.structures import PairSample
 
 CONFIG = {
@@ -102,7 +102,7 @@ def test_build_dataset_with_cache_dir_uses_worker_processes(tmp_path):
 
 
 def test_unlabeled_and_variable_size_pairs_round_trip(tmp_path):
-    from datasets.cache import write_shard
+    from linereg.datasets.cache import write_shard
     from linereg.structures import PairSample
 
     samples = [
@@ -130,11 +130,11 @@ def test_unlabeled_and_variable_size_pairs_round_trip(tmp_path):
 def test_build_dataset_errors_name_the_problem(tmp_path):
     with pytest.raises(KeyError, match=r"unknown dataset 'modelnet'.*modelnet40"):
         build_dataset({"name": "modelnet"})
-    with pytest.raises(ValueError, match=r"unknown key\(s\) \['num_shape'\].*num_shapes"):
+    with pytest.raises(ValueError, match=r"unknown argument\(s\) \['num_shape'\].*num_shapes"):
         build_dataset({"name": "procedural", "num_shape": 3})
-    with pytest.raises(ValueError, match=r"needs key\(s\) \['root'\]"):
+    with pytest.raises(ValueError, match=r"needs argument\(s\) \['root'\]"):
         build_dataset({"name": "mesh_folder"})
-    with pytest.raises(ValueError, match="needs a 'name'"):
+    with pytest.raises(KeyError, match="needs a 'name'"):
         build_dataset({"root": "x"})
     with pytest.raises(TypeError, match="must be a mapping"):
         build_dataset("procedural")

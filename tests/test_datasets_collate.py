@@ -9,7 +9,7 @@ import pytest
 import torch
 from torch.utils.data import DataLoader
 
-from datasets.collate import collate_pairs
+from linereg.datasets.collate import collate_pairs
 from linereg.structures import PairSample
 
 

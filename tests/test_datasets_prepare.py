@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from datasets import build_dataset
+from linereg.datasets import build_dataset
 from scripts import prepare_dataset
 
 SMALL = {"name": "procedural", "num_shapes": 1, "protocol": {"name": "airplane", "num_views": 5, "num_points": 64}}

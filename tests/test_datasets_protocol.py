@@ -7,9 +7,9 @@ import pytest
 import trimesh
 from scipy.spatial import cKDTree
 
-from datasets import build_dataset
-from datasets.procedural import ProceduralShapes, procedural_shape
-from datasets.protocol import (
+from linereg.datasets import build_dataset
+from linereg.datasets.procedural import ProceduralShapes, procedural_shape
+from linereg.datasets.protocol import (
     CropProtocol,
     Shape,
     ShapeViews,
@@ -17,7 +17,7 @@ from datasets.protocol import (
     build_protocol,
     scale_transform,
 )
-from datasets.shape_pairs import ShapePairDataset
+from linereg.datasets.shape_pairs import ShapePairDataset
 
 
 def _apply(transform: np.ndarray, points: np.ndarray) -> np.ndarray:

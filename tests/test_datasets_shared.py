@@ -7,9 +7,9 @@ import pytest
 import trimesh
 from scipy.spatial import cKDTree
 
-from datasets import build_dataset
-from datasets.formats import read_depth_image, read_intrinsics
-from datasets.rgbd import depth_to_points
+from linereg.datasets import build_dataset
+from linereg.datasets.formats import read_depth_image, read_intrinsics
+from linereg.datasets.rgbd import depth_to_points
 from linereg.io import read_mesh
 
 pytestmark = pytest.mark.shared_data

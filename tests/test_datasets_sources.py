@@ -13,10 +13,10 @@ from PIL import Image
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
-from datasets import build_dataset
-from datasets.formats import read_depth_image, read_log, read_overlap_log
-from datasets.procedural import procedural_shape
-from datasets.rgbd import depth_to_points
+from linereg.datasets import build_dataset
+from linereg.datasets.formats import read_depth_image, read_log, read_overlap_log
+from linereg.datasets.procedural import procedural_shape
+from linereg.datasets.rgbd import depth_to_points
 from linereg.io import write_point_cloud, write_transform
 
 
@@ -463,7 +463,7 @@ def test_depth_to_points_geometry():
     depth = np.zeros((4, 6), dtype=np.uint16)
     depth[2, 5] = 2000
     depth[0, 0] = 65535
-    from datasets.formats import Intrinsics
+    from linereg.datasets.formats import Intrinsics
 
     points = depth_to_points(depth, Intrinsics(100.0, 50.0, 3.0, 1.0), depth_scale=1000.0)
     np.testing.assert_allclose(points, [[(5 - 3) * 2 / 100, (2 - 1) * 2 / 50, 2.0]])

@@ -10,12 +10,12 @@ import pytest
 import torch
 from hydra import compose, initialize_config_dir
 
-from train import loop
-from train.benchmark import run_pairs
-from train.checkpoint import find_checkpoint, load_checkpoint
-from train.curriculum import build_split
-from train.evaluate import Evaluation, evaluate, report
-from train.figures import plot_registration, registration_figure
+from linereg.checkpoint import find_checkpoint, load_checkpoint
+from linereg.datasets.benchmark_pairs import run_pairs
+from linereg.datasets.splits import build_split
+from linereg.train import loop
+from linereg.train.evaluate import Evaluation, evaluate, report
+from linereg.train.figures import plot_registration, registration_figure
 
 ROOT = Path(__file__).resolve().parent.parent
 

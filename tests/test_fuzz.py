@@ -20,12 +20,12 @@ import torch.nn.functional as F
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-import losses.supervised  # noqa: F401  (registers the supervised losses and regularisers)
+import linereg.losses.supervised  # noqa: F401  (registers the supervised losses and regularisers)
+from linereg.losses import LOSSES, AlignmentLoss, build_loss
+from linereg.losses.lines import SAMPLERS
+from linereg.models import MODELS
 from linereg.se3 import inverse, se3_exp, transform_points
 from linereg.structures import PairBatch, RegistrationOutput
-from losses import LOSSES, AlignmentLoss, build_loss
-from losses.lines import SAMPLERS
-from models import MODELS, build_model
 
 GEOMETRIES = ("random", "coincident", "collinear", "planar")
 SCALES = (1e-9, 1e-6, 1e-3, 1.0, 1e3, 1e6)
@@ -219,7 +219,7 @@ MODEL_NAMES = MODELS.names()
 def test_every_model_is_finite_or_explains(name, data):
     case = data.draw(cases(max_points=16, equal_counts=name == "fmr"))
     torch.manual_seed(case.seed)
-    model = build_model({"name": name, **SMALL_MODELS[name]}).train()
+    model = MODELS.build({"name": name, **SMALL_MODELS[name]}).train()
     batch = make_batch(case, normals=True)
     loss = build_loss({"name": SUPERVISED_LOSS[name]})
 

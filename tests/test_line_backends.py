@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 import torch
 
+from linereg.losses import line_kernels
+from linereg.losses.line_intersection import LineMetricOptions, line_intersection_metric
 from linereg.se3 import transform_points
-from losses import line_kernels
-from losses.line_intersection import LineMetricOptions, line_intersection_metric
 from tests.test_line_intersection import blob, lines_for, rigid
 
 OPTIONS = {

@@ -8,11 +8,11 @@ import numpy as np
 import pytest
 import torch
 
+from linereg.losses import build_loss
+from linereg.losses.line_intersection import LineIntersectionLoss, LineMetricOptions, line_intersection_metric
+from linereg.losses.lines import SAMPLERS, sample_lines
 from linereg.se3 import euler_to_rotmat, rt_to_matrix, transform_points
 from linereg.structures import PairBatch, RegistrationOutput
-from losses import build_loss
-from losses.line_intersection import LineIntersectionLoss, LineMetricOptions, line_intersection_metric
-from losses.lines import SAMPLERS, sample_lines
 from tests.line_reference import dense_line_metric
 
 

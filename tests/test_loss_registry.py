@@ -5,8 +5,8 @@ from __future__ import annotations
 import pytest
 import torch
 
+from linereg.losses import LOSSES, WeightedSum, build_loss
 from linereg.structures import PairBatch, RegistrationOutput
-from losses import LOSSES, WeightedSum, build_loss
 
 
 def _batch(with_gt: bool) -> PairBatch:

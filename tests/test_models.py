@@ -8,15 +8,15 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-import losses.supervised  # noqa: F401  (registers the supervised losses)
+import linereg.losses.supervised  # noqa: F401  (registers the supervised losses)
 from linereg.checks import check_transform
+from linereg.losses.base import build_loss
+from linereg.models import MODELS
+from linereg.models.blocks import shared_mlp, soft_correspondence_transform
+from linereg.models.rpmnet import PPFFeatures, ball_query, log_sinkhorn
 from linereg.random_poses import random_transform_paper
 from linereg.se3 import inverse, rotation_angle, rt_to_matrix, transform_normals, transform_points
 from linereg.structures import PairBatch, RegistrationOutput
-from losses.base import build_loss
-from models import MODELS, build_model, list_models
-from models.blocks import shared_mlp, soft_correspondence_transform
-from models.rpmnet import PPFFeatures, ball_query, log_sinkhorn
 
 MODEL_NAMES = MODELS.names()
 
@@ -71,7 +71,7 @@ def make_pair(
 
 
 def small_model(name: str, **overrides) -> torch.nn.Module:
-    return build_model({"name": name, **SMALL[name], **overrides})
+    return MODELS.build({"name": name, **SMALL[name], **overrides})
 
 
 def rotation_error_deg(T_pred: torch.Tensor, T_gt: torch.Tensor) -> torch.Tensor:
@@ -81,30 +81,30 @@ def rotation_error_deg(T_pred: torch.Tensor, T_gt: torch.Tensor) -> torch.Tensor
 class TestRegistry:
     def test_registered_names(self):
         assert MODEL_NAMES == ["dcp_v1", "dcp_v2", "fmr", "rpmnet"]
-        assert list_models("dcp*") == ["dcp_v1", "dcp_v2"]
+        assert MODELS.names("dcp*") == ["dcp_v1", "dcp_v2"]
 
     def test_unknown_name_lists_the_models(self):
         with pytest.raises(KeyError, match="dcp_v1, dcp_v2, fmr, rpmnet"):
-            build_model({"name": "pointnetlk"})
+            MODELS.build({"name": "pointnetlk"})
         with pytest.raises(KeyError, match="needs a 'name'"):
-            build_model({"emb_dims": 8})
+            MODELS.build({"emb_dims": 8})
 
     def test_unknown_argument_names_the_model(self):
         expected = r"model 'rpmnet' got unknown argument\(s\) \['emb_dims'\]"
         with pytest.raises(TypeError, match=expected):
-            build_model({"name": "rpmnet", "emb_dims": 8})
+            MODELS.build({"name": "rpmnet", "emb_dims": 8})
 
     def test_defaults_are_the_papers(self):
-        rpmnet = build_model({"name": "rpmnet"})
+        rpmnet = MODELS.build({"name": "rpmnet"})
         assert (rpmnet.features.radius, rpmnet.features.num_neighbors) == (0.3, 64)
         assert (rpmnet.train_iters, rpmnet.test_iters, rpmnet.sinkhorn_iters) == (2, 5, 5)
         assert [m.num_groups for m in rpmnet.features.prepool_norms] == [8, 8, 8]
-        fmr = build_model({"name": "fmr"})
+        fmr = MODELS.build({"name": "fmr"})
         assert fmr.encoder.mlp[-3].out_channels == 1024
         assert (fmr.train_iters, fmr.test_iters) == (10, 10)
         assert isinstance(fmr.dt, torch.nn.Parameter)
         torch.testing.assert_close(fmr.dt.detach(), torch.full((6,), 0.01))
-        dcp = build_model({"name": "dcp_v2"})
+        dcp = MODELS.build({"name": "dcp_v2"})
         assert (dcp.emb_dims, dcp.embedding.k) == (512, 20)
         groups = [m.num_groups for m in dcp.modules() if isinstance(m, torch.nn.GroupNorm)]
         assert groups == [8, 8, 8, 16, 16]
@@ -385,7 +385,7 @@ def test_overfits_a_single_pair(name):
     """Each model learns one noise-free pair to a rotation error below 1 degree."""
     kwargs, loss_config, lr, max_steps, max_angle = OVERFIT[name]
     torch.manual_seed(0)
-    model = build_model({"name": name, **kwargs})
+    model = MODELS.build({"name": name, **kwargs})
     loss = build_loss(loss_config)
     batch = make_pair(1, 128, seed=2, max_angle_deg=max_angle)
     optimiser = torch.optim.Adam(model.parameters(), lr=lr)

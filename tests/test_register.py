@@ -17,10 +17,10 @@ from omegaconf import open_dict
 from linereg.io import read_point_cloud, read_transform, write_point_cloud, write_transform
 from linereg.metrics import registration_errors
 from linereg.paths import REPO_ROOT
+from linereg.registration import METHODS
+from linereg.registration.solvers import start_poses
 from linereg.se3 import euler_to_rotmat, rotation_angle, rt_to_matrix
-from train.methods import build_method
-from train.register import RegisterError, parse_init, register_files
-from train.solvers import start_poses
+from linereg.train.register import RegisterError, parse_init, register_files
 
 
 def surface(n: int, seed: int) -> np.ndarray:
@@ -65,7 +65,7 @@ def test_solvers_recover_a_known_pose(config):
     src = surface(800, 0)
     T = pose([20, -15, 10], [0.3, -0.2, 0.1])
     tgt = apply(T, surface(800, 0))
-    result = build_method(config)(src, tgt)
+    result = METHODS.build(config)(src, tgt)
     assert err_r(result.transform, T, src) < 1.0
     assert result.seconds > 0 and len(result.info["loss_curve"]) > 0
 
@@ -74,8 +74,8 @@ def test_multi_start_escapes_the_local_minimum_of_a_single_start():
     src = surface(800, 0)
     T = pose([100, 40, 0], [0.2, 0.0, 0.0])
     tgt = apply(T, surface(800, 0))
-    single = build_method({**FAST_ADAM, "starts": 1})(src, tgt)
-    multi = build_method({**FAST_ADAM, "starts": 7})(src, tgt)
+    single = METHODS.build({**FAST_ADAM, "starts": 1})(src, tgt)
+    multi = METHODS.build({**FAST_ADAM, "starts": 7})(src, tgt)
     assert err_r(single.transform, T, src) > 90.0
     assert err_r(multi.transform, T, src) < 1.0 and multi.info["start"] != 0
 
@@ -83,7 +83,7 @@ def test_multi_start_escapes_the_local_minimum_of_a_single_start():
 def test_registration_is_deterministic_given_the_seed():
     src = surface(500, 4)
     tgt = apply(pose([30, 20, -10], [0.1, 0.0, 0.2]), surface(500, 4))
-    first, second = (build_method({**FAST_ADAM, "seed": 3})(src, tgt) for _ in range(2))
+    first, second = (METHODS.build({**FAST_ADAM, "seed": 3})(src, tgt) for _ in range(2))
     np.testing.assert_array_equal(first.transform, second.transform)
     assert first.info["start"] == second.info["start"]
 
@@ -101,26 +101,26 @@ def test_start_poses():
 
 def test_identical_clouds_give_the_identity():
     cloud = surface(600, 1)
-    result = build_method({**FAST_ADAM, "num_points": 400})(cloud, cloud)
+    result = METHODS.build({**FAST_ADAM, "num_points": 400})(cloud, cloud)
     np.testing.assert_allclose(result.transform, np.eye(4), atol=2e-3)
 
 
 def test_supervised_loss_is_rejected():
     with pytest.raises(ValueError, match="ground truth"):
-        build_method({"name": "adam_loss", "stages": [{"loss": {"name": "gt_dcp"}, "iterations": 1, "lr": 0.1}]})
+        METHODS.build({"name": "adam_loss", "stages": [{"loss": {"name": "gt_dcp"}, "iterations": 1, "lr": 0.1}]})
 
 
 def test_a_loss_that_is_no_alignment_metric_is_rejected():
     with pytest.raises(ValueError, match="not an alignment metric"):
         stage = {"loss": {"name": "rpmnet_outlier"}, "iterations": 1, "lr": 0.1}
-        build_method({"name": "adam_loss", "stages": [stage]})
+        METHODS.build({"name": "adam_loss", "stages": [stage]})
 
 
 def test_unknown_stage_preset_and_keys():
     with pytest.raises(ValueError, match="preset"):
-        build_method({"name": "adam_loss", "stages": "fastest"})
+        METHODS.build({"name": "adam_loss", "stages": "fastest"})
     with pytest.raises(TypeError, match="stage key"):
-        build_method(
+        METHODS.build(
             {"name": "adam_loss", "stages": [{"loss": {"name": "chamfer"}, "iterations": 1, "lr": 0.1, "mom": 1}]}
         )
 

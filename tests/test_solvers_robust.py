@@ -1,4 +1,4 @@
-"""The ``register`` default, :class:`train.solvers.RobustRegistration`, and its building blocks."""
+"""The ``register`` default, :class:`linereg.registration.solvers.RobustRegistration`, and its building blocks."""
 
 from __future__ import annotations
 
@@ -8,10 +8,9 @@ import numpy as np
 import pytest
 import torch
 
-from linereg.se3 import euler_to_rotmat, rotation_angle, rt_to_matrix
-from losses.chamfer import chamfer_welsch_distance
-from train.methods import build_method
-from train.solvers import (
+from linereg.losses.chamfer import chamfer_welsch_distance
+from linereg.registration import METHODS
+from linereg.registration.solvers import (
     NearestTarget,
     RobustOptions,
     alignment_quality,
@@ -23,6 +22,7 @@ from train.solvers import (
     torch_threads,
     welsch_irls,
 )
+from linereg.se3 import euler_to_rotmat, rotation_angle, rt_to_matrix
 
 
 def surface(n: int, seed: int) -> np.ndarray:
@@ -129,7 +129,7 @@ def test_options_are_checked():
     with pytest.raises(ValueError, match="doubt_ratio must be >= 1"):
         RobustOptions(doubt_ratio=0.5)
     with pytest.raises(TypeError, match="unknown option"):
-        build_method({"name": "robust", "options": {"startz": 3}})
+        METHODS.build({"name": "robust", "options": {"startz": 3}})
 
 
 @pytest.fixture(scope="module")
@@ -142,7 +142,7 @@ def partial_pair():
 
 def test_robust_registration_recovers_a_partial_view_and_reports_its_quality(partial_pair):
     src, tgt, truth = partial_pair
-    result = build_method({"name": "robust", "num_points": 1024})(src, tgt)
+    result = METHODS.build({"name": "robust", "num_points": 1024})(src, tgt)
     assert rotation_error_deg(result.transform, truth) < 0.5
     info = result.info
     assert info["fitness"] > 0.95 and 0 < info["inlier_rmse"] < info["fitness_threshold"]
@@ -152,7 +152,7 @@ def test_robust_registration_recovers_a_partial_view_and_reports_its_quality(par
 
 def test_a_doubtful_pose_gets_a_second_round_from_more_starts(partial_pair):
     src, tgt, truth = partial_pair
-    result = build_method({"name": "robust", "num_points": 512, "options": {"max_cost": 1e-6}})(src, tgt)
+    result = METHODS.build({"name": "robust", "num_points": 512, "options": {"max_cost": 1e-6}})(src, tgt)
     assert result.info["rounds"] == 2 and result.info["starts"] == 4 + 24
     assert result.info["converged"] is False
     assert rotation_error_deg(result.transform, truth) < 1.0
@@ -162,14 +162,14 @@ def test_init_is_applied_to_the_source_first(partial_pair):
     src, tgt, truth = partial_pair
     flip = pose([180, 0, 0], [0, 0, 0])
     single = {"name": "robust", "num_points": 512, "options": {"starts": 1, "max_cost": 1.0}}
-    result = build_method(single)(apply(np.linalg.inv(flip), src), tgt, init=flip)
+    result = METHODS.build(single)(apply(np.linalg.inv(flip), src), tgt, init=flip)
     assert rotation_error_deg(result.transform @ np.linalg.inv(flip), truth) < 0.5
 
 
 def test_threads_are_restored_and_results_are_deterministic(partial_pair):
     src, tgt, _ = partial_pair
     before = torch.get_num_threads()
-    method = build_method({"name": "robust", "num_points": 512, "threads": 1})
+    method = METHODS.build({"name": "robust", "num_points": 512, "threads": 1})
     first, second = method(src, tgt), method(src, tgt)
     assert torch.get_num_threads() == before
     np.testing.assert_array_equal(first.transform, second.transform)
@@ -180,11 +180,11 @@ def test_threads_are_restored_and_results_are_deterministic(partial_pair):
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
 def test_robust_registration_on_cuda_matches_cpu(partial_pair):
     src, tgt, _ = partial_pair
-    on_cpu = build_method({"name": "robust", "num_points": 512})(src, tgt)
-    on_gpu = build_method({"name": "robust", "num_points": 512, "device": "cuda"})(src, tgt)
+    on_cpu = METHODS.build({"name": "robust", "num_points": 512})(src, tgt)
+    on_gpu = METHODS.build({"name": "robust", "num_points": 512, "device": "cuda"})(src, tgt)
     np.testing.assert_allclose(on_gpu.transform, on_cpu.transform, atol=1e-4)
 
 
 def test_the_device_argument_is_checked():
     with pytest.raises(RuntimeError):
-        build_method({"name": "robust", "device": "nonsense"})
+        METHODS.build({"name": "robust", "device": "nonsense"})

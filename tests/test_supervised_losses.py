@@ -5,11 +5,8 @@ from __future__ import annotations
 import pytest
 import torch
 
-from linereg.random_poses import random_transform_paper
-from linereg.se3 import inverse, rt_to_matrix
-from linereg.structures import PairBatch, RegistrationOutput
-from losses.base import LOSSES, build_loss
-from losses.supervised import (
+from linereg.losses.base import LOSSES, build_loss
+from linereg.losses.supervised import (
     DCPCycleLoss,
     DCPSupervisedLoss,
     FMRReconstructionLoss,
@@ -18,6 +15,9 @@ from losses.supervised import (
     RPMNetSupervisedLoss,
     outlier_penalty,
 )
+from linereg.random_poses import random_transform_paper
+from linereg.se3 import inverse, rt_to_matrix
+from linereg.structures import PairBatch, RegistrationOutput
 
 SUPERVISED = ["gt_rpmnet", "gt_dcp", "gt_fmr"]
 UNSUPERVISED = ["rpmnet_outlier", "dcp_cycle", "fmr_reconstruction"]

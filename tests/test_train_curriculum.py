@@ -5,9 +5,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from datasets import build_dataset
-from datasets.cache import CachedPairs
-from train.curriculum import Curriculum, Stage, SubsetPairs, build_split, dataset_config, subset_indices
+from linereg.datasets import build_dataset
+from linereg.datasets.cache import CachedPairs
+from linereg.datasets.splits import SubsetPairs, build_split, dataset_config, subset_indices
+from linereg.train.curriculum import Curriculum, Stage
 
 DATASET = {
     "name": "procedural",

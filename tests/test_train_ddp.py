@@ -10,7 +10,7 @@ import pytest
 import torch
 import torch.multiprocessing as mp
 
-from train import distributed
+from linereg.train import distributed
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -34,7 +34,7 @@ def _worker(rank: int, world_size: int, port: int, output_dir: str, results: str
     )
     from hydra import compose, initialize_config_dir
 
-    from train.loop import train
+    from linereg.train.loop import train
 
     with initialize_config_dir(str(ROOT / "configs"), version_base="1.3"):
         cfg = compose(

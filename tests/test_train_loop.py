@@ -10,12 +10,13 @@ import pytest
 import torch
 from hydra import compose, initialize_config_dir
 
+from linereg.checkpoint import load_checkpoint
 from linereg.io import write_point_cloud
+from linereg.losses import Loss
+from linereg.models import load_model
 from linereg.structures import LossOutput
-from losses import Loss
-from train import loop
-from train.checkpoint import load_checkpoint, load_model
-from train.logging import read_scalars
+from linereg.train import loop
+from linereg.train.logging import read_scalars
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -152,7 +153,7 @@ class _PoisonedLoss(Loss):
 
 
 def test_nan_loss_skips_the_step_and_names_the_sample(tmp_path, monkeypatch):
-    monkeypatch.setattr(loop, "build_loss_from_config", lambda config: _PoisonedLoss(bad_index=1))
+    monkeypatch.setattr(loop, "build_loss", lambda config: _PoisonedLoss(bad_index=1))
     cfg = tiny_config(
         tmp_path,
         "model.num_neighbors=8",
@@ -169,7 +170,7 @@ def test_nan_loss_skips_the_step_and_names_the_sample(tmp_path, monkeypatch):
 
 
 def test_a_run_whose_every_step_is_skipped_fails(tmp_path, monkeypatch):
-    monkeypatch.setattr(loop, "build_loss_from_config", lambda config: _PoisonedLoss(bad_index=None))
+    monkeypatch.setattr(loop, "build_loss", lambda config: _PoisonedLoss(bad_index=None))
     cfg = tiny_config(tmp_path, "model.num_neighbors=8", "curriculum=none", "curriculum.stages.full.epochs=1")
     with (
         pytest.raises(FloatingPointError, match=r"every training step of epoch 1 \(2 of 2\) was skipped"),
@@ -188,7 +189,7 @@ def test_a_diverging_learning_rate_does_not_exit_cleanly(tmp_path):
 
 
 def test_repeated_nan_losses_stop_the_run(tmp_path, monkeypatch):
-    monkeypatch.setattr(loop, "build_loss_from_config", lambda config: _PoisonedLoss(bad_index=1))
+    monkeypatch.setattr(loop, "build_loss", lambda config: _PoisonedLoss(bad_index=1))
     cfg = tiny_config(
         tmp_path,
         "model.num_neighbors=8",
@@ -223,7 +224,7 @@ def _toy_run(folder: Path, *overrides: str) -> dict:
 
 
 def test_term_gradient_norms_are_logged_on_logging_steps_without_changing_training(tmp_path, monkeypatch):
-    monkeypatch.setattr(loop, "build_loss_from_config", lambda config: _ThreeTermLoss())
+    monkeypatch.setattr(loop, "build_loss", lambda config: _ThreeTermLoss())
     logged = _toy_run(tmp_path / "logged", "trainer.log_every=2")
     records = [r for r in read_scalars(tmp_path / "logged") if "train/loss" in r]
     assert [r["step"] for r in records] == [2, 4]
@@ -246,7 +247,7 @@ def test_a_loss_term_named_total_is_refused_for_gradient_norms(tmp_path, monkeyp
             value = (output.transform[:, :3, 3] ** 2).sum()
             return LossOutput(total=value, terms={"total": value})
 
-    monkeypatch.setattr(loop, "build_loss_from_config", lambda config: TotalTerm())
+    monkeypatch.setattr(loop, "build_loss", lambda config: TotalTerm())
     with pytest.raises(ValueError, match=r"named 'total'.*log_term_grad_norms=false"):
         _toy_run(tmp_path)
 

@@ -15,10 +15,10 @@ import pytest
 import torch
 from hydra import compose, initialize_config_dir
 
-from losses import build_loss
-from train import checkpoint, loop
-from train.evaluate import evaluate
-from train.logging import read_scalars
+from linereg.losses import build_loss
+from linereg.train import checkpoint, loop, resume
+from linereg.train.evaluate import evaluate
+from linereg.train.logging import read_scalars
 
 ROOT = Path(__file__).resolve().parent.parent
 SMALL = ["model.num_neighbors=8", "loss.num_lines=300"]
@@ -103,12 +103,12 @@ def test_resume_true_finds_the_newest_sibling_with_the_same_overrides(tmp_path):
         (run / ".hydra").mkdir()
         (run / ".hydra" / "overrides.yaml").write_text("".join(f"- {o}\n" for o in overrides))
     current = tmp_path / "current"
-    found = loop._resume_checkpoint(True, current, ["seed=1", "resume=true"])
+    found = resume.resume_checkpoint(True, current, ["seed=1", "resume=true"])
     assert found == tmp_path / "new" / "checkpoints" / "last.pt"
-    assert loop._resume_checkpoint(True, current, ["seed=2"]).parent.parent.name == "other"
+    assert resume.resume_checkpoint(True, current, ["seed=2"]).parent.parent.name == "other"
     with pytest.raises(FileNotFoundError, match="same overrides"):
-        loop._resume_checkpoint(True, current, ["seed=3"])
-    assert loop._resume_checkpoint(False, current) is None
+        resume.resume_checkpoint(True, current, ["seed=3"])
+    assert resume.resume_checkpoint(False, current) is None
 
 
 def test_save_is_atomic(tmp_path, monkeypatch):

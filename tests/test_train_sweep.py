@@ -8,7 +8,7 @@ import subprocess
 import sys
 from pathlib import Path
 
-from train.summary import collect_runs, main, write_summary
+from linereg.train.summary import collect_runs, main, write_summary
 
 ROOT = Path(__file__).resolve().parent.parent
 

@@ -1,19 +1,30 @@
-"""Training, evaluation and registration entry points (``python -m train``, ``train.evaluate``, ...).
+"""The entry layer: training (``linereg-train``, ``python -m train``), ``evaluate``, ``register``,
+``benchmark`` and the training loop.
 
-``train(cfg)`` (:mod:`train.loop`) is imported on first use, so that light entry points of this
-package (``train.summary``) start without loading torch and the models.
+Every command of the package is a module here, so this file runs before any of them imports
+torch: it asks OpenMP threads to sleep rather than spin while they wait (``OMP_WAIT_POLICY``,
+unless the user set it), since spinning threads oversubscribe small machines (issue #14).
+``train(cfg)`` (:mod:`linereg.train.loop`) is imported on first use, so that light entry points
+(``linereg.train.summary``) start without loading torch and the models.
 """
 
 from __future__ import annotations
 
+import os
+from pathlib import Path
 from typing import Any
 
-__all__ = ["train"]
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+
+CONFIG_DIR = str(Path(__file__).resolve().parent.parent / "configs")
+"""The Hydra configs: ``configs/`` of a checkout, ``linereg/configs/`` of an installed package."""
+
+__all__ = ["CONFIG_DIR", "train"]
 
 
 def __getattr__(name: str) -> Any:
     if name == "train":
-        from train.loop import train
+        from linereg.train.loop import train
 
         return train
-    raise AttributeError(f"module 'train' has no attribute {name!r}")
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -1,5 +1,6 @@
-"""``python -m train [experiment=...] [key=value ...]``: a thin Hydra wrapper around
-:func:`train.loop.train` (``configs/train.yaml``). Returns the optimised metric to sweepers."""
+"""``linereg-train [experiment=...] [key=value ...]`` (or ``python -m train`` in a checkout): a thin
+Hydra wrapper around :func:`linereg.train.loop.train` (``configs/train.yaml``). Returns the optimised
+metric to sweepers."""
 
 from __future__ import annotations
 
@@ -8,17 +9,22 @@ import sys
 import hydra
 from omegaconf import DictConfig
 
-from train import distributed
-from train.loop import train
+from linereg.train import CONFIG_DIR, distributed
+from linereg.train.loop import train
 
 
-@hydra.main(version_base="1.3", config_path="../configs", config_name="train")
-def main(cfg: DictConfig) -> float | None:
+@hydra.main(version_base="1.3", config_path=CONFIG_DIR, config_name="train")
+def _train(cfg: DictConfig) -> float | None:
     metrics = train(cfg)["metrics"]
     value = metrics.get(cfg.optimized_metric)
     return None if value is None else float(value)
 
 
-if __name__ == "__main__":
+def main() -> float | None:
+    """The command: Hydra parses ``sys.argv`` (plus the rank overrides of a distributed launch)."""
     sys.argv.extend(distributed.hydra_rank_overrides())
+    return _train()
+
+
+if __name__ == "__main__":
     main()

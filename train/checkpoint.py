@@ -1,4 +1,4 @@
-"""Checkpoints: atomic writes, safe loading, RNG states, and components rebuilt from a config.
+"""Writing checkpoints during training: atomic saves, resume with fallback, RNG and generator states.
 
 A checkpoint is a ``torch.save`` dict holding only tensors and plain Python values, so it loads
 with ``torch.load(weights_only=True)``::
@@ -15,14 +15,13 @@ with ``torch.load(weights_only=True)``::
 
 Runs keep ``<run>/checkpoints/last.pt`` (every epoch) and ``best.pt`` (best monitored metric).
 A file that cannot be read (truncated, empty, garbage) raises :class:`CorruptCheckpointError`
-naming it; :func:`load_resume_checkpoint` then falls back to the newest readable checkpoint of
-the same folder with a warning.
+naming it (:func:`linereg.checkpoint.load_checkpoint` reads one);
+:func:`load_resume_checkpoint` falls back to the newest readable checkpoint of the same folder with a warning.
 """
 
 from __future__ import annotations
 
 import os
-import pickle
 import random
 import re
 import warnings
@@ -32,24 +31,20 @@ from typing import Any
 
 import numpy as np
 import torch
-from omegaconf import DictConfig, OmegaConf
 from torch import nn
 
-import losses.supervised  # noqa: F401  (registers the supervised losses and regularisers)
-from losses import Loss, build_loss
-from models import build_model
+from linereg.checkpoint import (
+    BEST,
+    FORMAT,
+    LAST,
+    VERSION,
+    CorruptCheckpointError,
+    find_checkpoint,
+    load_checkpoint,
+)
 
-FORMAT = "linereg-checkpoint"
-VERSION = 1
-CHECKPOINT_DIR = "checkpoints"
-LAST = "last.pt"
-BEST = "best.pt"
 # The temporary file of an unfinished save: ``.<name>.<pid>.tmp`` beside its destination.
 _TEMPORARY = re.compile(r"^\..+\.(?P<pid>\d+)\.tmp$")
-
-
-class CorruptCheckpointError(ValueError):
-    """A checkpoint file exists but cannot be read (truncated, empty or not a torch file)."""
 
 
 def save_checkpoint(state: Mapping[str, Any], path: str | Path) -> Path:
@@ -128,50 +123,6 @@ def _fsync_folder(folder: Path) -> None:
         os.close(descriptor)
 
 
-def find_checkpoint(path: str | Path, prefer: tuple[str, ...] = (BEST, LAST)) -> Path:
-    """The checkpoint file named by ``path``: the file itself, or in a run folder the first of
-    ``prefer`` found in ``<run>/checkpoints/`` (or directly in the folder).
-
-    Raises:
-        FileNotFoundError: nothing suitable exists.
-    """
-    path = Path(path).expanduser()
-    if path.is_file():
-        return path
-    if path.is_dir():
-        for folder in (path / CHECKPOINT_DIR, path):
-            for name in prefer:
-                if (folder / name).is_file():
-                    return folder / name
-        raise FileNotFoundError(f"no checkpoint ({' or '.join(prefer)}) in {path} or {path / CHECKPOINT_DIR}")
-    raise FileNotFoundError(f"checkpoint not found: {path}")
-
-
-def load_checkpoint(path: str | Path, map_location: str | torch.device = "cpu") -> dict[str, Any]:
-    """Load a checkpoint written by :func:`save_checkpoint` (a file or a run folder).
-
-    Raises:
-        FileNotFoundError: no checkpoint there.
-        CorruptCheckpointError: the file cannot be read (truncated, empty, not a torch file).
-        ValueError: the file is not a linereg checkpoint of a supported version.
-    """
-    file = find_checkpoint(path)
-    try:
-        state = torch.load(file, map_location=map_location, weights_only=True)
-    except (RuntimeError, EOFError, OSError, ValueError, IndexError, KeyError, pickle.UnpicklingError) as error:
-        detail = str(error).split(". ", 1)[0].strip()
-        raise CorruptCheckpointError(
-            f"{file}: cannot read the checkpoint ({file.stat().st_size} bytes; truncated, empty or not written by "
-            f"torch.save): {type(error).__name__}{': ' + detail if detail else ''}"
-        ) from error
-    if not isinstance(state, dict) or state.get("format") != FORMAT:
-        raise ValueError(f"{file} is not a linereg checkpoint (written by train/checkpoint.py)")
-    if state.get("version") != VERSION:
-        raise ValueError(f"{file}: checkpoint version {state.get('version')} is not supported (expected {VERSION})")
-    state["path"] = str(file)
-    return state
-
-
 def load_resume_checkpoint(path: str | Path, map_location: str | torch.device = "cpu") -> dict[str, Any]:
     """Load the checkpoint to resume from, falling back when it is corrupt.
 
@@ -209,22 +160,6 @@ def load_resume_checkpoint(path: str | Path, map_location: str | torch.device = 
     raise CorruptCheckpointError(
         "no readable checkpoint to resume from:\n  " + "\n  ".join(failures) + "\nstart a new run or restore a backup"
     )
-
-
-def load_model(path: str | Path, device: str | torch.device = "cpu") -> tuple[nn.Module, dict[str, Any]]:
-    """The model of a checkpoint, rebuilt from its stored config, in evaluation mode.
-
-    Args:
-        path: checkpoint file or run folder (``best.pt`` preferred).
-        device: where to put the model.
-
-    Returns:
-        ``(model, checkpoint)``; ``checkpoint["config"]`` is the run's resolved config.
-    """
-    state = load_checkpoint(path)
-    model = build_model(state["config"]["model"])
-    model.load_state_dict(state["model"])
-    return model.to(device).eval(), state
 
 
 def rng_state() -> dict[str, Any]:
@@ -287,46 +222,3 @@ def restore_generator_states(module: nn.Module, states: Mapping[str, torch.Tenso
         )
     for name, state in states.items():
         generators[name].set_state(state)
-
-
-def _is_handle(value: Any) -> bool:
-    """Whether a loss-config value may serve as a handle: a scalar or null."""
-    return value is None or isinstance(value, bool | int | float | str)
-
-
-def build_loss_from_config(config: Mapping[str, Any] | DictConfig) -> Loss:
-    """The loss of a run config (``configs/loss/``).
-
-    Either a single loss ``{name: ..., **kwargs}`` or a weighted sum
-    ``{terms: {label: {name, weight, **kwargs}}, **handles}``. Handles are top-level scalars
-    that terms reference by interpolation (``nu0: ${loss.nu0}``), so that sweeps can write
-    ``loss.nu0=...`` whatever the term is called; they are not passed to the builder. A handle
-    set to a value but referenced by no term gets a warning (it would change nothing).
-
-    Raises:
-        ValueError: a non-scalar key next to ``terms``.
-        KeyError, TypeError: unknown loss names or arguments (from :func:`losses.build_loss`).
-    """
-    if isinstance(config, DictConfig):
-        raw = OmegaConf.to_container(config, resolve=False)
-        resolved = OmegaConf.to_container(config, resolve=True)
-    else:
-        raw = resolved = dict(config)
-    if "terms" not in resolved:
-        return build_loss(resolved)
-    handles = {key: value for key, value in resolved.items() if key != "terms"}
-    structured = sorted(key for key, value in handles.items() if not _is_handle(value))
-    if structured:
-        raise ValueError(
-            f"loss config: unknown key(s) {structured} next to 'terms' (only scalar handles such as nu0 may "
-            "sit there; put loss arguments inside a term)"
-        )
-    if isinstance(config, DictConfig):
-        referenced = repr(raw["terms"])
-        names = ", ".join(f"{label}: {term.get('name')}" for label, term in resolved["terms"].items())
-        for key, value in handles.items():
-            if value is not None and "${loss." + key + "}" not in referenced:
-                warnings.warn(
-                    f"loss.{key}={value!r} has no effect: no term of this loss ({names}) uses it", stacklevel=2
-                )
-    return build_loss({"terms": resolved["terms"]})

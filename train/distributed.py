@@ -26,7 +26,7 @@ from torch import nn
 from torch.nn.parallel import DistributedDataParallel
 from torch.utils.data import DataLoader, Dataset, DistributedSampler
 
-from datasets import collate_pairs
+from linereg.datasets import collate_pairs
 from linereg.structures import RegistrationOutput
 
 AMP_DTYPES = {"bf16": torch.bfloat16, "fp16": torch.float16}

@@ -35,13 +35,15 @@ from torch import nn
 from torch.utils.data import Dataset
 from tqdm.auto import tqdm
 
-from linereg.metrics import ERROR_KEYS, alpha_recall, paper_table, registration_errors, summarize
+from linereg.checkpoint import load_checkpoint
+from linereg.datasets.splits import build_split
+from linereg.losses import build_loss
+from linereg.metrics import ERROR_KEYS, aggregate_errors, paper_table, registration_errors
+from linereg.models import MODELS
+from linereg.registry import plain
 from linereg.structures import PairBatch
-from models import build_model
-from train import distributed
-from train.checkpoint import build_loss_from_config, load_checkpoint
-from train.curriculum import build_split, plain
-from train.figures import plot_registration
+from linereg.train import CONFIG_DIR, distributed
+from linereg.train.figures import plot_registration
 
 log = logging.getLogger(__name__)
 
@@ -90,11 +92,7 @@ class Evaluation:
         """Flat metrics: error means/medians and ``recall@<alpha>`` (model, or the identity),
         plus the loss and statistics (model only)."""
         errors = self.identity_errors if identity else self.errors
-        values: dict[str, float] = {}
-        if errors is not None:
-            values.update(summarize(errors))
-            recall = alpha_recall(errors["err_pw_l2"], torch.tensor(list(alphas), dtype=torch.float64))
-            values.update({f"recall@{alpha:g}": float(r) for alpha, r in zip(alphas, recall, strict=True)})
+        values = {} if errors is None else aggregate_errors(errors, alphas=alphas)
         if not identity:
             values.update(self.losses)
             values.update(self.stats)
@@ -301,7 +299,7 @@ def evaluate(cfg: DictConfig) -> dict[str, Any]:
     distributed.set_threads(cfg.threads)
     state = load_checkpoint(cfg.checkpoint)
     stored = state["config"]
-    model = build_model(stored["model"])
+    model = MODELS.build(stored["model"])
     model.load_state_dict(state["model"])
     model.to(device)
     data_source = load_checkpoint(cfg.data_from)["config"] if cfg.get("data_from") else stored
@@ -312,7 +310,7 @@ def evaluate(cfg: DictConfig) -> dict[str, Any]:
     dataset: Dataset | None = build_split(dataset_config, cfg.split, progress=cfg.progress)
     if dataset is None:
         raise ValueError(f"dataset {dataset_config.get('name')!r} has no {cfg.split!r} split")
-    loss = build_loss_from_config(stored["loss"]).to(device) if cfg.with_loss else None
+    loss = build_loss(stored["loss"]).to(device) if cfg.with_loss else None
     if loss is not None and loss.needs_gt and not _labelled(dataset):
         loss = None
     loader = distributed.make_loader(
@@ -355,7 +353,7 @@ def _labelled(dataset: Dataset) -> bool:
     return len(dataset) > 0 and dataset[0].gt_transform is not None
 
 
-@hydra.main(version_base="1.3", config_path="../configs", config_name="evaluate")
+@hydra.main(version_base="1.3", config_path=CONFIG_DIR, config_name="evaluate")
 def main(cfg: DictConfig) -> None:
     evaluate(cfg)
 

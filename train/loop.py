@@ -31,7 +31,7 @@ import random
 import time
 import warnings
 from collections import defaultdict
-from collections.abc import Iterable, Mapping
+from collections.abc import Mapping
 from dataclasses import dataclass, fields, replace
 from pathlib import Path
 from typing import Any
@@ -43,83 +43,29 @@ from omegaconf import DictConfig, OmegaConf
 from torch import nn
 from tqdm.auto import tqdm
 
-from linereg.registry import Registry
+from linereg.checkpoint import BEST, CHECKPOINT_DIR, LAST, load_checkpoint
+from linereg.datasets.splits import build_split
+from linereg.losses import build_loss
+from linereg.models import MODELS
+from linereg.registry import plain
 from linereg.structures import LossOutput, PairBatch, RegistrationOutput
-from models import build_model
-from train import distributed
-from train.checkpoint import (
-    BEST,
-    CHECKPOINT_DIR,
-    LAST,
-    build_loss_from_config,
-    find_checkpoint,
+from linereg.train import distributed
+from linereg.train.checkpoint import (
     generator_states,
-    load_checkpoint,
     load_resume_checkpoint,
     restore_generator_states,
     restore_rng_state,
     rng_state,
     save_checkpoint,
 )
-from train.curriculum import Curriculum, Stage, build_split, plain
-from train.evaluate import Evaluation, evaluate_model, report, write_evaluation
-from train.figures import registration_figure
-from train.logging import RunLogger
+from linereg.train.curriculum import Curriculum, Stage
+from linereg.train.evaluate import Evaluation, evaluate_model, report, write_evaluation
+from linereg.train.figures import registration_figure
+from linereg.train.logging import RunLogger
+from linereg.train.optim import OPTIMIZERS, SCHEDULERS
+from linereg.train.resume import config_for_resume, resume_checkpoint
 
 log = logging.getLogger(__name__)
-
-OPTIMIZERS: Registry[torch.optim.Optimizer] = Registry("optimizer")
-OPTIMIZERS.register("adam")(torch.optim.Adam)
-OPTIMIZERS.register("adamw")(torch.optim.AdamW)
-OPTIMIZERS.register("sgd")(torch.optim.SGD)
-
-SCHEDULERS: Registry[Any] = Registry("scheduler")
-
-
-@SCHEDULERS.register("constant")
-def _constant(optimizer: torch.optim.Optimizer, *, epochs: int) -> None:
-    """No schedule: the stage's learning rate throughout."""
-    return None
-
-
-@SCHEDULERS.register("cosine")
-def _cosine(optimizer: torch.optim.Optimizer, *, epochs: int, min_lr_scale: float = 0.01):
-    """Cosine decay over the stage's epochs down to ``min_lr_scale`` x its learning rate."""
-    lr = optimizer.param_groups[0]["lr"]
-    return torch.optim.lr_scheduler.CosineAnnealingLR(optimizer, T_max=max(epochs, 1), eta_min=lr * min_lr_scale)
-
-
-@SCHEDULERS.register("step")
-def _step(optimizer: torch.optim.Optimizer, *, epochs: int, step_size: int = 10, gamma: float = 0.5):
-    """Multiply the learning rate by ``gamma`` every ``step_size`` epochs of the stage."""
-    return torch.optim.lr_scheduler.StepLR(optimizer, step_size=step_size, gamma=gamma)
-
-
-# Keys a resumed run takes from the current command line instead of the checkpoint.
-RESUME_OVERRIDABLE = ("trainer.device", "trainer.threads", "trainer.num_workers", "trainer.progress", "resume")
-
-
-def _from_registry(registry: Registry, config: Mapping[str, Any], kind: str, *args: Any, **extra: Any) -> Any:
-    """Build ``registry[config.name](*args, **rest of config, **extra)`` with a clear error."""
-    config = dict(plain(config))
-    if "name" not in config:
-        raise ValueError(f"the {kind} config needs a 'name', one of {', '.join(registry.names())}")
-    name = config.pop("name")
-    try:
-        return registry.get(name)(*args, **config, **extra)
-    except TypeError as error:
-        raise TypeError(f"{kind} {name!r}: {error} (config keys: {sorted(config)})") from error
-
-
-def build_optimizer(parameters: Iterable[nn.Parameter], config: Mapping[str, Any]) -> torch.optim.Optimizer:
-    """An optimizer from ``{name: adam|adamw|sgd, lr: ..., **torch arguments}``."""
-    return _from_registry(OPTIMIZERS, config, "optimizer", parameters)
-
-
-def build_scheduler(optimizer: torch.optim.Optimizer, config: Mapping[str, Any], epochs: int):
-    """A per-epoch scheduler for one curriculum stage (``None`` for ``constant``)."""
-    return _from_registry(SCHEDULERS, config, "scheduler", optimizer, epochs=epochs)
-
 
 @dataclass(frozen=True)
 class TrainerSettings:
@@ -200,25 +146,14 @@ def _select_sample(value: Any, index: int, batch_size: int) -> Any:
     return value
 
 
-def _flatten(config: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:
-    """``{"a.b": value}`` for a nested mapping."""
-    flat = {}
-    for key, value in config.items():
-        if isinstance(value, Mapping):
-            flat.update(_flatten(value, f"{prefix}{key}."))
-        else:
-            flat[f"{prefix}{key}"] = value
-    return flat
-
-
 class Trainer:
-    """Trains one model through its curriculum (use :func:`train`).
+    """Trains one model through its curriculum (use :func:`linereg.train`).
 
     Args:
         config: the resolved run config (plain dict).
         run_dir: the run folder (checkpoints, logs, evaluation).
         ctx: distributed context of this process.
-        loss: the loss (built by :func:`train` from the unresolved config, to check handles).
+        loss: the loss (built by :func:`linereg.train` from the unresolved config, to check handles).
     """
 
     def __init__(self, config: dict[str, Any], run_dir: Path, ctx: distributed.DistContext, loss: nn.Module) -> None:
@@ -229,10 +164,10 @@ class Trainer:
         self.device = ctx.device
         self.amp = distributed.amp_dtype(self.settings.amp, self.device)
         self.seed = int(config["seed"])
-        self.model = build_model(config["model"]).to(self.device)
+        self.model = MODELS.build(config["model"]).to(self.device)
         self.loss = loss.to(self.device)
         self.curriculum = Curriculum.from_config(config["curriculum"], allow_empty=self.settings.untrained)
-        self.optimizer = build_optimizer(self.model.parameters(), config["optimizer"])
+        self.optimizer = OPTIMIZERS.build(config["optimizer"], self.model.parameters())
         self.base_lr = float(config["optimizer"]["lr"])
         self.scheduler = None
         self.scaler = torch.amp.GradScaler(self.device.type, enabled=self.amp == torch.float16)
@@ -252,7 +187,7 @@ class Trainer:
 
     # ----------------------------------------------------------------------------- state
     def state_dict(self, metrics: Mapping[str, float]) -> dict[str, Any]:
-        """Everything needed to continue exactly (see :mod:`train.checkpoint`); before the first
+        """Everything needed to continue exactly (see :mod:`linereg.train.checkpoint`); before the first
         stage (an untrained run) ``progress.stage`` and ``progress.stage_name`` are ``None``."""
         stage = None if self.stage_index is None else self.curriculum.stages[self.stage_index]
         return {
@@ -312,7 +247,7 @@ class Trainer:
         for group in self.optimizer.param_groups:
             group["lr"] = lr
             group["initial_lr"] = lr
-        self.scheduler = build_scheduler(self.optimizer, self.config["scheduler"], stage.epochs)
+        self.scheduler = SCHEDULERS.build(self.config["scheduler"], self.optimizer, epochs=stage.epochs)
         self.train_data = build_split(
             self.config["dataset"],
             "train",
@@ -734,61 +669,6 @@ def _json(value: Any) -> str:
     return json.dumps(clean(value), indent=2)
 
 
-def _run_overrides(run_dir: Path) -> list[str] | None:
-    """The command-line overrides Hydra recorded for a run folder, without ``resume``."""
-    recorded = run_dir / ".hydra" / "overrides.yaml"
-    if not recorded.is_file():
-        return None
-    return sorted(str(item) for item in OmegaConf.load(recorded) if not str(item).startswith("resume="))
-
-
-def _resume_checkpoint(resume: Any, output_dir: Path, overrides: list[str] | None = None) -> Path | None:
-    """The checkpoint a ``resume`` setting names.
-
-    ``true``: this run folder's ``last.pt``, else that of the newest sibling run folder started
-    with the same command-line ``overrides`` (when they are known; ``resume=...`` aside). A path:
-    that checkpoint file or run folder.
-    """
-    if resume in (None, False):
-        return None
-    if resume is not True:
-        return find_checkpoint(resume, prefer=(LAST, BEST))
-    own = output_dir / CHECKPOINT_DIR / LAST
-    if own.is_file():
-        return own
-    wanted = None if overrides is None else sorted(o for o in overrides if not o.startswith("resume="))
-    siblings = [
-        path
-        for path in output_dir.parent.glob(f"*/{CHECKPOINT_DIR}/{LAST}")
-        if wanted is None or _run_overrides(path.parent.parent) == wanted
-    ]
-    if not siblings:
-        raise FileNotFoundError(
-            f"resume=true: no {CHECKPOINT_DIR}/{LAST} in {output_dir} or in a sibling run started with the same "
-            "overrides; pass the run folder instead: resume=<path>"
-        )
-    return max(siblings, key=lambda path: path.stat().st_mtime)
-
-
-def _config_for_resume(current: dict[str, Any], stored: dict[str, Any]) -> dict[str, Any]:
-    """The checkpoint's config, with the command line's :data:`RESUME_OVERRIDABLE` keys."""
-    merged = OmegaConf.create(stored)
-    current_flat, stored_flat = _flatten(current), _flatten(stored)
-    for key in RESUME_OVERRIDABLE:
-        if key in current_flat:
-            OmegaConf.update(merged, key, current_flat[key], force_add=True)
-    ignored = sorted(
-        key
-        for key in set(current_flat) | set(stored_flat)
-        if key not in RESUME_OVERRIDABLE
-        and not key.startswith("paths.")
-        and current_flat.get(key) != stored_flat.get(key)
-    )
-    if ignored:
-        warnings.warn(f"resuming with the checkpoint's config; ignored differences: {ignored}", stacklevel=3)
-    return OmegaConf.to_container(merged)
-
-
 def train(cfg: DictConfig) -> dict[str, Any]:
     """Train a model as configured (``configs/train.yaml``); the body of ``python -m train``.
 
@@ -808,17 +688,17 @@ def train(cfg: DictConfig) -> dict[str, Any]:
         output_dir = Path(config["paths"]["output_dir"])
         overrides = list(HydraConfig.get().overrides.task) if HydraConfig.initialized() else None
         resume_file = distributed.broadcast_object(
-            _resume_checkpoint(config.get("resume"), output_dir, overrides) if ctx.is_main else None, ctx
+            resume_checkpoint(config.get("resume"), output_dir, overrides) if ctx.is_main else None, ctx
         )
         state = None
         if resume_file is not None:
             state = load_resume_checkpoint(resume_file, map_location=ctx.device)
-            config = _config_for_resume(config, state["config"])
+            config = config_for_resume(config, state["config"])
             output_dir = Path(state["path"]).parent.parent
             log.info("resuming %s at epoch %d", state["path"], state["progress"]["epoch"])
         distributed.set_threads(config["trainer"].get("threads"))
         seed_everything(int(config["seed"]), bool(config.get("deterministic", False)))
-        loss = build_loss_from_config(config["loss"] if state is not None else cfg.loss)
+        loss = build_loss(config["loss"] if state is not None else cfg.loss)
         trainer = Trainer(config, output_dir, ctx, loss)
         if state is not None:
             trainer.load_state_dict(state)

@@ -1,5 +1,6 @@
-"""Register one pair of point clouds: ``python -m train.register source=a.ply target=b.ply``.
+"""Register one pair of point clouds: ``linereg-register source=a.ply target=b.ply``.
 
+A thin command around :func:`linereg.register` (also ``python -m train.register`` in a checkout).
 Hydra overrides select everything else (``configs/register/register.yaml``; the app has its own
 config root so that ``loss=...`` names a loss, not the training configs' ``loss`` group)::
 
@@ -9,6 +10,8 @@ config root so that ``loss=...`` names a loss, not the training configs' ``loss`
     python -m train.register source=a.ply target=b.ply picture=true         # + before/after PNG
     python -m train.register source=a.ply target=b.ply solver=adam          # Adam schedules
     python -m train.register source=a.ply target=b.ply solver=svd           # IRLS/SVD solver
+    python -m train.register source=a.ply target=b.ply method=icp_point     # any registered method
+    python -m train.register source=a.ply target=b.ply method=outputs/train/runs/<run> refine=true  # a network
 
 It prints the 4x4 source-to-target transform with Open3D's ``fitness`` and ``inlier_rmse`` and a
 ``converged`` flag, and writes ``transform.txt``, ``registered.ply`` (the whole source,
@@ -29,6 +32,8 @@ import hydra
 import numpy as np
 from omegaconf import DictConfig, ListConfig, OmegaConf
 
+from linereg.train import CONFIG_DIR
+
 log = logging.getLogger(__name__)
 
 _MIN_POINTS = 3
@@ -36,7 +41,7 @@ SOLVERS = ("robust", "adam", "svd")
 
 
 class RegisterError(ValueError):
-    """A bad argument of ``train.register``; the message names it."""
+    """A bad argument of the register command; the message names it."""
 
 
 def parse_init(value: Any) -> np.ndarray | None:
@@ -99,8 +104,11 @@ def read_cloud(path: Any, argument: str):
         raise RegisterError(f"{argument}={path}: {error}") from error
 
 
-def method_config(cfg: DictConfig) -> dict[str, Any]:
-    """The registration method described by a ``register.yaml`` config."""
+def method_config(cfg: DictConfig) -> dict[str, Any] | str:
+    """The registration method described by a ``register.yaml`` config: ``method`` (a registered name
+    or a checkpoint, passed on as it is) or the ``solver`` shorthand's method config."""
+    if cfg.method is not None:
+        return str(cfg.method)
     common = {"num_points": cfg.num_points, "seed": cfg.seed, "progress": cfg.progress}
     if cfg.solver not in SOLVERS:
         raise RegisterError(f"solver={cfg.solver}: choose one of {', '.join(SOLVERS)}")
@@ -118,9 +126,8 @@ def method_config(cfg: DictConfig) -> dict[str, Any]:
         return {
             "name": "robust",
             "options": options,
-            "device": cfg.device,
+            "device": cfg.device or "cpu",
             "threads": cfg.threads,
-            "fitness_threshold": cfg.fitness_threshold,
             **common,
         }
     if cfg.loss is not None:
@@ -133,9 +140,13 @@ def method_config(cfg: DictConfig) -> dict[str, Any]:
 
 
 def register_files(cfg: DictConfig, out_dir: Path) -> tuple[Any, dict[str, Any]]:
-    """Run the configured registration on ``cfg.source``/``cfg.target`` and write the outputs.
+    """Run :func:`linereg.register` on ``cfg.source``/``cfg.target`` as configured and write the outputs.
 
     Everything is read and checked before the solver runs; ``out_dir`` is written only at the end.
+
+    Returns:
+        ``(result, report)``: the :class:`~linereg.registration.RegistrationResult` and the
+        contents of ``result.json``.
 
     Raises:
         RegisterError: a bad argument or file, naming it.
@@ -144,10 +155,8 @@ def register_files(cfg: DictConfig, out_dir: Path) -> tuple[Any, dict[str, Any]]
 
     from linereg.io import read_transform, write_point_cloud, write_transform
     from linereg.metrics import registration_errors, rotation_error_deg
+    from linereg.registration import register
     from linereg.se3 import transform_normals
-
-    from . import solvers  # noqa: F401  (registers robust, adam_loss and svd_irls)
-    from .methods import build_method
 
     src = read_cloud(cfg.source, "source")
     tgt = read_cloud(cfg.target, "target")
@@ -158,10 +167,8 @@ def register_files(cfg: DictConfig, out_dir: Path) -> tuple[Any, dict[str, Any]]
         except (FileNotFoundError, ValueError) as error:
             raise RegisterError(f"gt={cfg.gt}: {error}") from error
     init = parse_init(cfg.init)
-    if init is not None and cfg.solver != "robust":
-        raise RegisterError(f"init= is supported by solver=robust, not solver={cfg.solver}")
     config = method_config(cfg)
-    if gt is not None and cfg.solver != "robust":
+    if gt is not None and isinstance(config, dict) and config["name"] != "robust":
         R_gt = torch.from_numpy(gt[:3, :3])
 
         def monitor(step: int, transform: np.ndarray, loss: float) -> dict[str, float]:
@@ -169,40 +176,41 @@ def register_files(cfg: DictConfig, out_dir: Path) -> tuple[Any, dict[str, Any]]
             return {"err_r": float(rotation_error_deg(torch.from_numpy(transform[:3, :3]), R_gt))}
 
         config["monitor"] = monitor
-    try:
-        method = build_method(config)
-    except (TypeError, ValueError) as error:
-        raise RegisterError(f"solver={cfg.solver}: {error}") from error
+    options = {"refine": OmegaConf.to_container(cfg.refine) if OmegaConf.is_config(cfg.refine) else cfg.refine}
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         try:
-            if init is not None:
-                result = method(src.xyz, tgt.xyz, src.normals, tgt.normals, init=init)
-            else:
-                result = method(src.xyz, tgt.xyz, src.normals, tgt.normals)
-        except ValueError as error:
+            result = register(
+                src,
+                tgt,
+                init=init,
+                method=config,
+                device=cfg.device if cfg.method is not None else None,
+                fitness_threshold=cfg.fitness_threshold,
+                **(options if cfg.method is not None else {}),
+            )
+        except (KeyError, TypeError, ValueError) as error:
             raise RegisterError(str(error)) from error
     notes = [str(w.message) for w in caught if issubclass(w.category, UserWarning)]
     for note in notes:
         log.warning(note)
-    transform = result.transform
-    quality = {
-        key: result.info[key] for key in ("fitness", "inlier_rmse", "converged", "confidence") if key in result.info
-    }
+    transform = result.transformation
+    info = dict(result.info)
+    quality = {key: info.pop(key) for key in ("converged", "confidence", "init") if key in info}
     report: dict[str, Any] = {
         "source": str(cfg.source),
         "target": str(cfg.target),
         "source_points": len(src.xyz),
         "target_points": len(tgt.xyz),
-        "method": {k: v for k, v in config.items() if k != "monitor"},
+        "method": info.pop("method"),
         "seconds": result.seconds,
         "transform": transform.tolist(),
+        "fitness": result.fitness,
+        "inlier_rmse": result.inlier_rmse,
         **quality,
-        "info": {k: v for k, v in result.info.items() if k not in quality},
+        "info": info,
         "warnings": notes,
     }
-    if init is not None:
-        report["init"] = init.tolist()
     if gt is not None:
         errors = registration_errors(
             torch.from_numpy(transform)[None], torch.from_numpy(gt)[None], torch.from_numpy(src.xyz).double()[None]
@@ -218,7 +226,7 @@ def register_files(cfg: DictConfig, out_dir: Path) -> tuple[Any, dict[str, Any]]
     write_point_cloud(out_dir / "registered.ply", moved, normals)
     (out_dir / "result.json").write_text(json.dumps(report, indent=2, default=float))
     if cfg.picture:
-        from .figures import plot_registration
+        from linereg.train.figures import plot_registration
 
         plot_registration(src.xyz, tgt.xyz, transform, out_dir / "registration.png", title=Path(cfg.source).name)
     return result, report
@@ -233,7 +241,7 @@ def _remove_if_empty(folder: Path) -> None:
         path.rmdir()
 
 
-@hydra.main(version_base="1.3", config_path="../configs/register", config_name="register")
+@hydra.main(version_base="1.3", config_path=f"{CONFIG_DIR}/register", config_name="register")
 def main(cfg: DictConfig) -> None:
     out_dir = Path(hydra.core.hydra_config.HydraConfig.get().runtime.output_dir)
     try:
@@ -247,10 +255,9 @@ def main(cfg: DictConfig) -> None:
         raise
     np.set_printoptions(precision=6, suppress=True)
     print(f"source -> target transform ({result.seconds:.2f} s):")
-    print(result.transform)
-    if "fitness" in report:
-        flag = "converged" if report.get("converged", True) else "NOT converged (doubtful pose)"
-        print(f"fitness {report['fitness']:.3f} | inlier_rmse {report['inlier_rmse']:.4g} | {flag}")
+    print(result.transformation)
+    flag = "converged" if report.get("converged", True) else "NOT converged (doubtful pose)"
+    print(f"fitness {result.fitness:.3f} | inlier_rmse {result.inlier_rmse:.4g} | {flag}")
     if "metrics" in report:
         m = report["metrics"]
         print(

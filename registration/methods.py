@@ -4,7 +4,7 @@ Every method (the optimisation-based registration with any loss, and the classic
 baselines) is a callable ``method(src, tgt, src_normals=None, tgt_normals=None)`` on numpy
 ``(N, 3)`` / ``(M, 3)`` clouds returning a :class:`MethodResult` whose ``transform`` maps the
 source onto the target (``tgt ≈ R @ src + t``). Build one with
-``build_method({"name": ..., **kwargs})``.
+``METHODS.build({"name": ..., **kwargs})``.
 
 Fairness (reference-notes §3c): by default every method sees both clouds translated to their
 centroids, and the translation is folded back into the returned transform, so methods that do
@@ -14,7 +14,7 @@ not centre internally are not handicapped by the initial offset.
 from __future__ import annotations
 
 import time
-from collections.abc import Callable, Mapping
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -75,21 +75,3 @@ def run_centered(
     seconds = time.perf_counter() - start
     transform = translation(c_tgt) @ np.asarray(result.transform, dtype=np.float64) @ translation(-c_src)
     return MethodResult(transform=transform, seconds=seconds, info=result.info)
-
-
-def build_method(config: Mapping[str, Any]) -> Method:
-    """Build a registered method from ``{name: ..., **kwargs}``.
-
-    Raises:
-        KeyError: unknown name (the message lists the registered methods).
-        TypeError: unknown keyword arguments, naming the method.
-    """
-    config = dict(config)
-    if "name" not in config:
-        raise KeyError(f"a method config needs a 'name' (one of {', '.join(METHODS.names())})")
-    name = config.pop("name")
-    builder = METHODS.get(name)
-    try:
-        return builder(**config)
-    except TypeError as err:
-        raise TypeError(f"registration method {name!r}: {err}") from err

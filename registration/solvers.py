@@ -31,16 +31,15 @@ from scipy.spatial import cKDTree
 from tqdm.auto import tqdm
 
 from linereg.checks import check_points, check_transform
+from linereg.losses import build_loss
+from linereg.losses.base import AlignmentLoss
+from linereg.losses.chamfer import welsch
+from linereg.losses.line_intersection import LineMetricOptions, line_correspondences
 from linereg.metrics import rotation_error_deg
 from linereg.pointcloud import farthest_point_sampling, knn
 from linereg.procrustes import weighted_procrustes
+from linereg.registration.methods import METHODS, MethodResult, run_centered
 from linereg.se3 import se3_exp, transform_points
-from losses import build_loss
-from losses.base import AlignmentLoss
-from losses.chamfer import welsch
-from losses.line_intersection import LineMetricOptions, line_correspondences
-
-from .methods import METHODS, MethodResult, run_centered
 
 Monitor = Callable[[int, np.ndarray, float], dict[str, float]]
 """Called as ``monitor(step, T (4, 4) in the solver's frame, loss)``; returns values to show."""
@@ -176,7 +175,7 @@ class AdamRegistration(_Solver):
         seed: seeds the lines of every line-based loss.
         progress: show a progress bar with the loss (and the monitor's values).
         monitor: optional callback, e.g. the rotation error when ground truth is known.
-        center: register centred clouds (:func:`~train.methods.run_centered`).
+        center: register centred clouds (:func:`~linereg.registration.methods.run_centered`).
         starts: initial poses of the first stage (1..7, see :func:`start_poses`; the default 4
             is the identity and +90 deg about x, y, z: no benchmark pair needed the others).
         start_angle_deg: rotation of the extra starts.
@@ -307,7 +306,7 @@ class IRLSRegistration(_Solver):
         num_points: FPS subsample size for the metric.
         seed: seeds the lines.
         progress, monitor, center: as for :class:`AdamRegistration`.
-        **options: :class:`~losses.line_intersection.LineMetricOptions` fields.
+        **options: :class:`~linereg.losses.line_intersection.LineMetricOptions` fields.
     """
 
     def __init__(
@@ -396,7 +395,7 @@ def fixed_scale_fit(poses: torch.Tensor, src: torch.Tensor, nearest: NearestTarg
 
 
 def chamfer_welsch_batched(x: torch.Tensor, y: torch.Tensor, nu0: float) -> torch.Tensor:
-    """CD-W (:func:`losses.chamfer.chamfer_welsch_distance`) of small batched clouds.
+    """CD-W (:func:`linereg.losses.chamfer.chamfer_welsch_distance`) of small batched clouds.
 
     The same value and gradient, with the nearest neighbours of all ``B`` pairs found by one
     dense ``cdist`` (no gradient) instead of two KD-trees per pair: faster below about a
@@ -609,7 +608,7 @@ def polish_scales(options: RobustOptions, spacing: float) -> np.ndarray:
 class RobustRegistration(_Solver):
     """The ``register`` default: multi-start CD-W, Welsch IRLS, fixed-scale selection.
 
-    1. Both clouds centred (:func:`~train.methods.run_centered`) and scaled into the unit ball.
+    1. Both clouds centred (:func:`~linereg.registration.methods.run_centered`) and scaled into the unit ball.
     2. Coarse: Adam on CD-W (``nu0`` 2) from every start at once, on FPS subsets.
     3. Polish: Welsch IRLS from every coarse result on the full clouds (``num_points``).
     4. Select the candidate with the lowest :func:`fixed_scale_fit`. When the choice is doubtful
@@ -766,16 +765,7 @@ class RobustRegistration(_Solver):
         return MethodResult(transform=_unscale(pose.double().cpu().numpy(), radius), info=info)
 
 
-@METHODS.register("robust")
-def _build_robust(**kwargs: Any) -> RobustRegistration:
-    return RobustRegistration(**kwargs)
-
-
-@METHODS.register("adam_loss")
-def _build_adam(**kwargs: Any) -> AdamRegistration:
-    return AdamRegistration(**kwargs)
-
-
-@METHODS.register("svd_irls")
-def _build_irls(**kwargs: Any) -> IRLSRegistration:
-    return IRLSRegistration(**kwargs)
+# The constructors' defaults are the methods' defaults: the classes themselves are the builders.
+METHODS.register("robust")(RobustRegistration)
+METHODS.register("adam_loss")(AdamRegistration)
+METHODS.register("svd_irls")(IRLSRegistration)

@@ -1,9 +1,9 @@
 """Classical registration baselines of the paper's Table 1: ICP, point-to-plane ICP, FGR, FRICP.
 
-Each is registered in :data:`train.methods.METHODS` and built with
-``build_method({"name": ..., **kwargs})``; the result is a callable
+Each is registered in :data:`linereg.registration.methods.METHODS` and built with
+``METHODS.build({"name": ..., **kwargs})``; the result is a callable
 ``method(src, tgt, src_normals=None, tgt_normals=None) -> MethodResult`` on numpy clouds.
-Every method runs through :func:`train.methods.run_centered`: both clouds are translated to
+Every method runs through :func:`linereg.registration.methods.run_centered`: both clouds are translated to
 their centroids first (``center=True``, the fairness note) and the returned transform maps the
 original source onto the original target (``tgt ≈ R @ src + t``).
 
@@ -39,8 +39,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from linereg.pointcloud import estimate_normals
-
-from .methods import METHODS, MethodResult, run_centered
+from linereg.registration.methods import METHODS, MethodResult, run_centered
 
 FRICP_VARIANTS = ("ICP", "AA_ICP", "FICP", "RICP", "PPL", "RPPL")
 """``fricp_cpp.native.Method`` names usable by ``fricp``: plain ICP, Anderson-accelerated ICP,
@@ -118,7 +117,7 @@ class PointToPointICP:
             diameter are ignored (1.0 keeps nearly every pair, as Besl-McKay ICP).
         max_iterations: ICP iterations at most.
         tolerance: stop when fitness and inlier RMSE change by less than this (relative).
-        center: centre both clouds first (see :func:`train.methods.run_centered`).
+        center: centre both clouds first (see :func:`linereg.registration.methods.run_centered`).
     """
 
     max_correspondence_ratio: float = 0.25
@@ -151,7 +150,7 @@ class PointToPlaneICP:
         max_iterations: ICP iterations at most.
         tolerance: stop when fitness and inlier RMSE change by less than this (relative).
         normal_k: neighbours for the target normals when none are given.
-        center: centre both clouds first (see :func:`train.methods.run_centered`).
+        center: centre both clouds first (see :func:`linereg.registration.methods.run_centered`).
     """
 
     max_correspondence_ratio: float = 0.25
@@ -192,7 +191,7 @@ class FastGlobalRegistration:
         iterations: FGR iterations.
         tuple_test: FGR's tuple-consistency test of the feature matches.
         normal_k: neighbours for normals when none are given.
-        center: centre both clouds first (see :func:`train.methods.run_centered`).
+        center: centre both clouds first (see :func:`linereg.registration.methods.run_centered`).
     """
 
     voxel_ratio: float = 0.0
@@ -268,7 +267,7 @@ class FastRobustICP:
         max_iterations: ICP iterations per ``nu`` stage at most.
         tolerance: stop a stage when the transform changes by less than this.
         anderson_m: Anderson acceleration history length.
-        center: centre both clouds first (see :func:`train.methods.run_centered`).
+        center: centre both clouds first (see :func:`linereg.registration.methods.run_centered`).
     """
 
     variant: str = "RICP"

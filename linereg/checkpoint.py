@@ -1,0 +1,69 @@
+"""Reading checkpoints written by ``python -m train`` (the file format; writing is :mod:`linereg.train.checkpoint`).
+
+A checkpoint is a ``torch.save`` dict holding only tensors and plain Python values, so it loads
+with ``torch.load(weights_only=True)``; its ``format`` is ``"linereg-checkpoint"``, ``version`` 1,
+``config`` the run's resolved config and ``model`` the model's state dict. Runs keep
+``<run>/checkpoints/last.pt`` (every epoch) and ``best.pt`` (best monitored metric).
+"""
+
+from __future__ import annotations
+
+import pickle
+from pathlib import Path
+from typing import Any
+
+import torch
+
+FORMAT = "linereg-checkpoint"
+VERSION = 1
+CHECKPOINT_DIR = "checkpoints"
+LAST = "last.pt"
+BEST = "best.pt"
+
+
+class CorruptCheckpointError(ValueError):
+    """A checkpoint file exists but cannot be read (truncated, empty or not a torch file)."""
+
+
+def find_checkpoint(path: str | Path, prefer: tuple[str, ...] = (BEST, LAST)) -> Path:
+    """The checkpoint file named by ``path``: the file itself, or in a run folder the first of
+    ``prefer`` found in ``<run>/checkpoints/`` (or directly in the folder).
+
+    Raises:
+        FileNotFoundError: nothing suitable exists.
+    """
+    path = Path(path).expanduser()
+    if path.is_file():
+        return path
+    if path.is_dir():
+        for folder in (path / CHECKPOINT_DIR, path):
+            for name in prefer:
+                if (folder / name).is_file():
+                    return folder / name
+        raise FileNotFoundError(f"no checkpoint ({' or '.join(prefer)}) in {path} or {path / CHECKPOINT_DIR}")
+    raise FileNotFoundError(f"checkpoint not found: {path}")
+
+
+def load_checkpoint(path: str | Path, map_location: str | torch.device = "cpu") -> dict[str, Any]:
+    """Load a checkpoint written by :func:`save_checkpoint` (a file or a run folder).
+
+    Raises:
+        FileNotFoundError: no checkpoint there.
+        CorruptCheckpointError: the file cannot be read (truncated, empty, not a torch file).
+        ValueError: the file is not a linereg checkpoint of a supported version.
+    """
+    file = find_checkpoint(path)
+    try:
+        state = torch.load(file, map_location=map_location, weights_only=True)
+    except (RuntimeError, EOFError, OSError, ValueError, IndexError, KeyError, pickle.UnpicklingError) as error:
+        detail = str(error).split(". ", 1)[0].strip()
+        raise CorruptCheckpointError(
+            f"{file}: cannot read the checkpoint ({file.stat().st_size} bytes; truncated, empty or not written by "
+            f"torch.save): {type(error).__name__}{': ' + detail if detail else ''}"
+        ) from error
+    if not isinstance(state, dict) or state.get("format") != FORMAT:
+        raise ValueError(f"{file} is not a linereg checkpoint (written by train/checkpoint.py)")
+    if state.get("version") != VERSION:
+        raise ValueError(f"{file}: checkpoint version {state.get('version')} is not supported (expected {VERSION})")
+    state["path"] = str(file)
+    return state

@@ -1,0 +1,253 @@
+"""``linereg.register``: align two point clouds, with results modelled on Open3D's ``registration_*``.
+
+::
+
+    import linereg
+
+    result = linereg.register("scan_a.ply", "scan_b.ply")          # files, (N, 3) arrays or tensors
+    result.transformation                                          # (4, 4) source -> target
+    result.fitness, result.inlier_rmse, result.info["converged"]
+
+    linereg.register(src, tgt, init=T0)                            # an initial guess (4, 4)
+    linereg.register(src, tgt, method="icp_point")                 # any registered method
+    linereg.register(src, tgt, method="outputs/train/run/", refine=True)  # a trained network (+ solver)
+"""
+
+from __future__ import annotations
+
+import os
+import time
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from linereg.checks import check_points, check_transform
+from linereg.io import PointCloud, read_point_cloud
+from linereg.models import load_model
+from linereg.pointcloud import estimate_normals
+from linereg.registration.methods import METHODS, MethodResult, run_centered
+from linereg.registration.solvers import _normalise, _subsample, _unscale, alignment_quality, point_spacing
+from linereg.registry import UnknownNameError
+from linereg.structures import PairBatch
+
+DEFAULT_METHOD = "robust"
+_MIN_POINTS = 3
+
+
+@dataclass
+class RegistrationResult:
+    """The outcome of :func:`register` (Open3D's ``RegistrationResult``, plus time and details).
+
+    Attributes:
+        transformation: ``(4, 4)`` float64 transform mapping the source onto the target
+            (``tgt ≈ R @ src + t``), the initial guess included.
+        fitness: fraction of source points with a target point within ``info["fitness_threshold"]``.
+        inlier_rmse: RMS distance of those inlier points (0 without inliers).
+        seconds: wall-clock time of the registration (reading files excluded).
+        info: the method's details: ``method``, ``fitness_threshold``, and for the default solver
+            ``converged`` (false when the pose is doubtful), ``confidence``, ``rounds``, ...
+    """
+
+    transformation: np.ndarray
+    fitness: float
+    inlier_rmse: float
+    seconds: float
+    info: dict[str, Any] = field(default_factory=dict)
+
+
+def as_cloud(value: Any, name: str) -> tuple[np.ndarray, np.ndarray | None]:
+    """``(points (N, 3) float64, normals (N, 3) or None)`` from an array, a tensor, an Open3D cloud, a file
+    or a :class:`linereg.io.PointCloud`.
+
+    Raises:
+        FileNotFoundError: a path that does not exist (the message names the argument).
+        TypeError: an unsupported type.
+        ValueError: a malformed cloud (wrong shape, NaN/Inf, fewer than 3 points), naming ``name``.
+    """
+    normals = None
+    if isinstance(value, PointCloud):
+        points, normals = value.xyz, value.normals
+    elif isinstance(value, str | os.PathLike):
+        path = Path(value).expanduser()
+        if path.is_dir():
+            raise ValueError(f"{name}={value}: is a folder, expected a point-cloud file")
+        if not path.exists():
+            raise FileNotFoundError(f"{name}={value}: no such file")
+        try:
+            cloud = read_point_cloud(path, min_points=_MIN_POINTS)
+        except ValueError as error:
+            raise ValueError(f"{name}={value}: {error}") from error
+        points, normals = cloud.xyz, cloud.normals
+    elif type(value).__module__.startswith("open3d"):
+        if not hasattr(value, "points"):
+            raise TypeError(f"{name}: an Open3D {type(value).__name__} is not a point cloud")
+        points = np.asarray(value.points)
+        normals = np.asarray(value.normals) if value.has_normals() else None
+    elif isinstance(value, torch.Tensor):
+        points = value.detach().cpu().numpy()
+    elif isinstance(value, np.ndarray):
+        points = value
+    else:
+        raise TypeError(
+            f"{name}: expected an (N, 3) numpy array, a torch tensor, an Open3D PointCloud or a file path, "
+            f"got {type(value).__name__}"
+        )
+    check_points(points, name, batched=False, min_points=_MIN_POINTS)
+    return np.asarray(points, dtype=np.float64), None if normals is None else np.asarray(normals, dtype=np.float64)
+
+
+def _checked_init(init: Any) -> np.ndarray | None:
+    if init is None:
+        return None
+    transform = init.detach().cpu().numpy() if isinstance(init, torch.Tensor) else np.asarray(init)
+    if transform.shape != (4, 4):
+        raise ValueError(f"init must be a (4, 4) rigid transform, got shape {transform.shape}")
+    check_transform(transform, "init", rigid_atol=1e-4)
+    return transform.astype(np.float64)
+
+
+class LearnedRegistration:
+    """A network trained by ``python -m train`` as a registration method, optionally refined.
+
+    The clouds are centred, scaled together into the unit ball (the training data's scale),
+    farthest-point sampled to the run's ``trainer.num_points``, given normals (estimated when
+    missing), and the model's final estimate is mapped back to the original frames.
+
+    Args:
+        checkpoint: a checkpoint file or a run folder (``best.pt`` preferred).
+        device: torch device of the model.
+        num_points: points per cloud fed to the model (``None``: the run's ``trainer.num_points``).
+        refine: also run the default solver from the model's estimate (a single start:
+            coarse CD-W, Welsch IRLS, the selection, escalating only when doubtful); a mapping
+            gives :class:`~linereg.registration.solvers.RobustOptions` fields.
+    """
+
+    def __init__(
+        self,
+        checkpoint: str | Path,
+        *,
+        device: str | torch.device = "cpu",
+        num_points: int | None = None,
+        refine: bool | Mapping[str, Any] = False,
+    ) -> None:
+        self.model, state = load_model(checkpoint, device)
+        self.device = torch.device(device)
+        self.checkpoint = state["path"]
+        self.num_points = num_points or state["config"].get("trainer", {}).get("num_points") or 1024
+        self.refiner = None
+        if refine:
+            options = {"starts": 1, **(dict(refine) if isinstance(refine, Mapping) else {})}
+            self.refiner = METHODS.build({"name": DEFAULT_METHOD, "options": options, "device": str(self.device)})
+
+    @torch.no_grad()
+    def _predict(self, src, tgt, src_normals, tgt_normals) -> MethodResult:
+        src_s, tgt_s = _subsample(src, self.num_points), _subsample(tgt, self.num_points)
+        src_t, tgt_t, radius = _normalise(src_s, tgt_s)
+        normals = [estimate_normals(cloud.numpy()) for cloud in (src_t, tgt_t)]
+        batch = PairBatch(
+            src_xyz=src_t.float()[None],
+            tgt_xyz=tgt_t.float()[None],
+            src_normals=torch.from_numpy(normals[0]).float()[None],
+            tgt_normals=torch.from_numpy(normals[1]).float()[None],
+        ).to(self.device)
+        transform = self.model(batch).transform[0].double().cpu().numpy()
+        return MethodResult(transform=_unscale(transform, radius))
+
+    def __call__(self, src, tgt, src_normals=None, tgt_normals=None) -> MethodResult:
+        """Register ``src (N, 3)`` onto ``tgt (M, 3)`` (numpy); normals are re-estimated on the subsets."""
+        predicted = run_centered(self._predict, src, tgt)
+        info: dict[str, Any] = {"checkpoint": self.checkpoint, "network_transform": predicted.transform.tolist()}
+        if self.refiner is None:
+            return MethodResult(transform=predicted.transform, seconds=predicted.seconds, info=info)
+        refined = self.refiner(src, tgt, init=predicted.transform)
+        info.update(refined.info)
+        return MethodResult(transform=refined.transform, seconds=predicted.seconds + refined.seconds, info=info)
+
+
+def _build(method: Any, device: str | None, options: dict[str, Any]):
+    """The method object and a JSON-able description of it."""
+    if isinstance(method, Mapping):
+        config = {**method, **options}
+    elif isinstance(method, str) and (method == "default" or method in METHODS):
+        config = {"name": DEFAULT_METHOD if method == "default" else method, **options}
+    elif isinstance(method, str | os.PathLike) and Path(method).expanduser().exists():
+        settings = {"device": device or "cpu", **options}
+        return LearnedRegistration(Path(method).expanduser(), **settings), {"checkpoint": str(method), **options}
+    else:
+        raise UnknownNameError(
+            f"method={method!r}: not a registered method ({', '.join(['default', *METHODS.names()])}) "
+            "nor an existing checkpoint file or run folder"
+        )
+    if device is not None:
+        config["device"] = device
+    return METHODS.build(config), {key: value for key, value in config.items() if not callable(value)}
+
+
+def register(
+    source: Any,
+    target: Any,
+    init: Any = None,
+    method: str | os.PathLike | Mapping[str, Any] = "default",
+    device: str | None = None,
+    *,
+    fitness_threshold: float | None = None,
+    **options: Any,
+) -> RegistrationResult:
+    """Find the rigid transform mapping ``source`` onto ``target``.
+
+    Args:
+        source, target: ``(N, 3)`` numpy arrays or torch tensors, Open3D ``PointCloud`` s, or
+            point-cloud files (any format :func:`linereg.io.read_point_cloud` reads).
+        init: optional ``(4, 4)`` initial guess (odometry, GNSS) applied to the source first;
+            the result includes it.
+        method: ``"default"`` (the robust solver, ``robust``), any name in
+            :data:`linereg.registration.METHODS` (``adam_loss``, ``svd_irls``, ``icp_point``, ...),
+            a config ``{name: ..., **options}``, or a checkpoint file / run folder of
+            ``python -m train`` (the trained network; ``refine=True`` adds the solver).
+        device: torch device of the method (``None``: its default, the CPU); only for methods
+            that take one (the solvers and networks, not the Open3D baselines).
+        fitness_threshold: inlier distance of ``fitness`` / ``inlier_rmse`` in input units
+            (``None``: 3 times the target's median point spacing).
+        **options: the method's keyword arguments (e.g. ``num_points``, ``options={...}`` of
+            the robust solver, ``stages`` of ``adam_loss``, ``refine`` of a network).
+
+    Returns:
+        A :class:`RegistrationResult`.
+
+    Raises:
+        FileNotFoundError: a file that does not exist.
+        TypeError, ValueError: a malformed cloud or ``init`` (naming it).
+        linereg.registry.UnknownNameError: an unknown method (lists the registered ones).
+        linereg.registry.ArgumentError: an option the method does not take (lists the accepted ones).
+    """
+    src, src_normals = as_cloud(source, "source")
+    tgt, tgt_normals = as_cloud(target, "target")
+    initial = _checked_init(init)
+    solver, description = _build(method, device, options)
+    if initial is not None:
+        src = src @ initial[:3, :3].T + initial[:3, 3]
+        src_normals = None if src_normals is None else src_normals @ initial[:3, :3].T
+    start = time.perf_counter()
+    result = solver(src, tgt, src_normals, tgt_normals)
+    seconds = time.perf_counter() - start
+    transform = np.asarray(result.transform, dtype=np.float64)
+    info = {"method": description, **result.info}
+    if fitness_threshold is not None or "fitness" not in info:
+        tgt_fit = _subsample(tgt, 2048)
+        threshold = fitness_threshold or 3.0 * point_spacing(torch.from_numpy(tgt_fit))
+        info.update(alignment_quality(_subsample(src, 2048), tgt_fit, transform, threshold))
+        info["fitness_threshold"] = threshold
+    if initial is not None:
+        transform = transform @ initial
+        info["init"] = initial.tolist()
+    return RegistrationResult(
+        transformation=transform,
+        fitness=float(info.pop("fitness")),
+        inlier_rmse=float(info.pop("inlier_rmse")),
+        seconds=seconds,
+        info=info,
+    )

@@ -1,0 +1,142 @@
+"""``linereg.register``: inputs of every kind, the initial guess, trained networks, errors."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+import linereg
+from linereg.datasets.procedural import procedural_shape
+from linereg.io import write_point_cloud
+from linereg.models import MODELS
+from linereg.registry import ArgumentError, UnknownNameError
+from linereg.se3 import euler_to_rotmat, rt_to_matrix
+from linereg.train.checkpoint import save_checkpoint
+
+FAST = {"method": "icp_point"}
+
+
+def pose(euler_deg, translation) -> np.ndarray:
+    R = euler_to_rotmat(torch.deg2rad(torch.tensor(euler_deg, dtype=torch.float64)))
+    return rt_to_matrix(R, torch.tensor(translation, dtype=torch.float64)).numpy()
+
+
+def rotation_error_deg(A: np.ndarray, B: np.ndarray) -> float:
+    cosine = (np.trace(A[:3, :3].T @ B[:3, :3]) - 1) / 2
+    return float(np.degrees(np.arccos(np.clip(cosine, -1.0, 1.0))))
+
+
+@pytest.fixture(scope="module")
+def pair() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``(src (600, 3), tgt (600, 3), T)`` with ``tgt = T src``, float64."""
+    src = np.asarray(procedural_shape(np.random.default_rng(3)).sample(600, seed=3), dtype=np.float64)
+    T = pose([40.0, -20.0, 25.0], [0.2, -0.1, 0.05])
+    return src, src @ T[:3, :3].T + T[:3, 3], T
+
+
+def test_the_default_solver_recovers_the_pose(pair):
+    src, tgt, T = pair
+    result = linereg.register(src, tgt, num_points=256)
+    assert isinstance(result, linereg.RegistrationResult)
+    assert result.transformation.shape == (4, 4) and result.transformation.dtype == np.float64
+    assert rotation_error_deg(result.transformation, T) < 0.5
+    assert result.fitness > 0.95 and 0 <= result.inlier_rmse < result.info["fitness_threshold"] and result.seconds > 0
+    assert result.info["converged"] and result.info["method"]["name"] == "robust"
+
+
+def test_arrays_tensors_and_files_give_the_same_result(pair, tmp_path):
+    src, tgt, _ = pair
+    from_arrays = linereg.register(src.astype(np.float32), tgt.astype(np.float32), **FAST)
+    from_tensors = linereg.register(torch.from_numpy(src).float(), torch.from_numpy(tgt).float(), **FAST)
+    write_point_cloud(tmp_path / "src.ply", src.astype(np.float32))
+    write_point_cloud(tmp_path / "tgt.ply", tgt.astype(np.float32))
+    from_files = linereg.register(tmp_path / "src.ply", str(tmp_path / "tgt.ply"), **FAST)
+    for other in (from_tensors, from_files):
+        np.testing.assert_allclose(other.transformation, from_arrays.transformation, atol=1e-9)
+        assert other.fitness == from_arrays.fitness
+
+
+def test_open3d_clouds_are_accepted(pair):
+    o3d = pytest.importorskip("open3d")
+    src, tgt, T = pair
+    clouds = [o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points)) for points in (src, tgt)]
+    result = linereg.register(*clouds, **FAST)
+    assert rotation_error_deg(result.transformation, T) < 0.5
+
+
+def test_init_is_honoured(pair):
+    """A pose far beyond the search's reach is found from a nearby guess, and the guess is in the result."""
+    src, _, _ = pair
+    T = pose([170.0, 0.0, 20.0], [0.4, 0.1, 0.0])  # beyond ICP's reach without a guess
+    tgt = src @ T[:3, :3].T + T[:3, 3]
+    guess = pose([165.0, 3.0, 15.0], [0.35, 0.1, 0.05])
+    result = linereg.register(src, tgt, init=guess, method="icp_point")
+    assert rotation_error_deg(result.transformation, T) < 0.1
+    np.testing.assert_allclose(result.info["init"], guess)
+    without = linereg.register(src, tgt, method="icp_point")
+    assert rotation_error_deg(without.transformation, T) > 10
+
+
+def test_a_registered_method_with_options(pair):
+    src, tgt, _ = pair
+    result = linereg.register(src, tgt, method="icp_point", max_iterations=5, fitness_threshold=0.05)
+    assert result.info["fitness_threshold"] == 0.05 and result.info["method"]["max_iterations"] == 5
+    assert 0.0 <= result.fitness <= 1.0
+
+
+@pytest.fixture(scope="module")
+def checkpoint(tmp_path_factory):
+    """A checkpoint of ``python -m train``'s format holding a small untrained RPM-Net."""
+    model_config = {"name": "rpmnet", "feature_dim": 16, "num_neighbors": 8, "test_iters": 2}
+    torch.manual_seed(0)
+    model = MODELS.build(model_config)
+    run = tmp_path_factory.mktemp("run")
+    state = {"config": {"model": model_config, "trainer": {"num_points": 256}}, "model": model.state_dict()}
+    save_checkpoint(state, run / "checkpoints" / "best.pt")
+    return run
+
+
+def test_a_trained_network_registers_and_the_refinement_recovers_the_pose(pair, checkpoint):
+    src, tgt, T = pair
+    by_folder = linereg.register(src, tgt, method=checkpoint)
+    by_file = linereg.register(src, tgt, method=str(checkpoint / "checkpoints" / "best.pt"))
+    np.testing.assert_allclose(by_folder.transformation, by_file.transformation, atol=1e-6)
+    np.testing.assert_allclose(by_folder.transformation, by_folder.info["network_transform"])
+    rotation = by_folder.transformation[:3, :3]
+    np.testing.assert_allclose(rotation.T @ rotation, np.eye(3), atol=1e-5)
+    refined = linereg.register(src, tgt, method=checkpoint, refine=True)
+    assert rotation_error_deg(refined.transformation, T) < 0.5
+    assert refined.info["checkpoint"].endswith("best.pt") and "converged" in refined.info
+
+
+@pytest.mark.parametrize(
+    ("source", "error", "message"),
+    [
+        (np.zeros((10, 2)), ValueError, "source"),
+        (np.full((10, 3), np.nan), ValueError, "source"),
+        (np.zeros((2, 3)), ValueError, "source"),
+        ([[0.0, 0.0, 0.0]] * 5, TypeError, "source: expected an"),
+        ("no_such_file.ply", FileNotFoundError, "source=no_such_file.ply: no such file"),
+    ],
+    ids=["2d", "nan", "two-points", "list", "missing-file"],
+)
+def test_bad_clouds_are_named(pair, source, error, message):
+    with pytest.raises(error, match=message):
+        linereg.register(source, pair[1])
+
+
+def test_bad_init_method_and_options_are_named(pair, tmp_path):
+    src, tgt, _ = pair
+    with pytest.raises(ValueError, match="init"):
+        linereg.register(src, tgt, init=np.eye(3))
+    with pytest.raises(ValueError, match="init"):
+        linereg.register(src, tgt, init=2 * np.eye(4))
+    with pytest.raises(UnknownNameError, match="icp_point"):
+        linereg.register(src, tgt, method="nope")
+    with pytest.raises(ArgumentError, match=r"'icp_point' got unknown argument\(s\) \['device'\]"):
+        linereg.register(src, tgt, method="icp_point", device="cpu")
+    with pytest.raises(ArgumentError, match="not_an_option"):
+        linereg.register(src, tgt, not_an_option=1)
+    with pytest.raises(ValueError, match="is a folder"):
+        linereg.register(tmp_path, tgt)

@@ -82,7 +82,6 @@ import numpy as np
 import torch
 
 from linereg.checks import check_lengths, check_points, check_same_batch
-from linereg.pointcloud import knn
 
 from . import line_kernels, line_torch
 from .base import LOSSES, AlignmentLoss
@@ -285,20 +284,22 @@ def _neighbors(
     cloud: torch.Tensor, lengths: torch.Tensor, k: int, backend: str
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """``valid (B, N)``, ``neighbors (B, N, k)`` (sample-local) and their ``distances (B, N, k)``:
-    a KD-tree per sample for ``numba``, a masked brute-force search for ``torch``."""
+    a grid search per sample for ``numba`` (:func:`losses.line_kernels.nearest_neighbors`), a
+    masked brute-force search for ``torch``; rows of padding points are zero for ``numba``."""
     batch, n = cloud.shape[:2]
     valid = torch.arange(n, device=cloud.device)[None] < lengths.to(cloud.device)[:, None]
     if backend == "torch":
         idx, dist = line_torch.masked_knn(cloud, valid, k)
         return valid, idx, dist
-    if bool((lengths == n).all()):
-        found = knn(cloud, cloud, k, exclude_self=True)
-        return valid, found.idx, found.dists
+    counts = lengths.tolist()
+    offsets = np.concatenate([[0], np.cumsum(counts)])
+    stacked = cloud[valid].numpy() if sum(counts) < batch * n else cloud.reshape(-1, 3).numpy()
+    found, found_dist = line_kernels.nearest_neighbors(stacked, offsets, k)
+    if offsets[-1] == batch * n:
+        return valid, torch.from_numpy(found).view(batch, n, k), torch.from_numpy(found_dist).view(batch, n, k)
     idx = torch.zeros(batch, n, k, dtype=torch.int64)
     dist = torch.zeros(batch, n, k, dtype=torch.float64)
-    for b, length in enumerate(lengths.tolist()):
-        found = knn(cloud[b, :length], cloud[b, :length], k, exclude_self=True)
-        idx[b, :length], dist[b, :length] = found.idx, found.dists
+    idx[valid], dist[valid] = torch.from_numpy(found), torch.from_numpy(found_dist)
     return valid, idx, dist
 
 

@@ -737,3 +737,107 @@ def welsch_lines(
             for a in range(3):
                 grad[members[h, m], a] += weights[h, m] * hit_grad[h, a]
     return value, grad, scale, counts
+
+
+@numba.njit(cache=True)
+def _cloud_knn(points, k, out_index, out_dist):
+    """The ``k`` nearest other points of every point of one cloud, sorted by distance, found
+    in a uniform grid of about two points per cell by searching rings of cells outwards until
+    no closer point can remain."""
+    n = points.shape[0]
+    lo = np.empty(3)
+    extent = np.empty(3)
+    for a in range(3):
+        lo[a] = points[:, a].min()
+        extent[a] = points[:, a].max() - lo[a]
+    floor = 1e-9 * max(extent.max(), 1e-300)
+    volume = max(extent[0], floor) * max(extent[1], floor) * max(extent[2], floor)
+    cell = max((volume / max(n / 2, 1)) ** (1.0 / 3.0), 1e-300)
+    dims = np.empty(3, dtype=np.int64)
+    while True:
+        for a in range(3):
+            dims[a] = min(int(extent[a] / cell) + 1, 1 << 20)
+        if dims[0] * dims[1] * dims[2] <= 4 * n + 64:
+            break
+        cell *= 1.26
+    cell_of = np.empty(n, dtype=np.int64)
+    counts = np.zeros(dims[0] * dims[1] * dims[2] + 1, dtype=np.int64)
+    for i in range(n):
+        c = 0
+        for a in range(3):
+            c = c * dims[a] + min(dims[a] - 1, int((points[i, a] - lo[a]) / cell))
+        cell_of[i] = c
+        counts[c + 1] += 1
+    start = np.cumsum(counts)
+    fill = start[:-1].copy()
+    order = np.empty(n, dtype=np.int64)
+    for i in range(n):
+        order[fill[cell_of[i]]] = i
+        fill[cell_of[i]] += 1
+    best = np.empty(k)
+    home = np.empty(3, dtype=np.int64)
+    for i in range(n):
+        c = cell_of[i]
+        margin = np.inf
+        for a in range(2, -1, -1):
+            home[a] = c % dims[a]
+            c //= dims[a]
+            offset = points[i, a] - lo[a] - home[a] * cell
+            margin = min(margin, offset, cell - offset)
+        margin = max(margin, 0.0)
+        for m in range(k):
+            best[m] = np.inf
+            out_index[i, m] = -1
+        ring = 0
+        while True:
+            for x in range(max(home[0] - ring, 0), min(home[0] + ring, dims[0] - 1) + 1):
+                for y in range(max(home[1] - ring, 0), min(home[1] + ring, dims[1] - 1) + 1):
+                    on_shell = abs(x - home[0]) == ring or abs(y - home[1]) == ring
+                    for z in range(max(home[2] - ring, 0), min(home[2] + ring, dims[2] - 1) + 1):
+                        if not (on_shell or abs(z - home[2]) == ring):
+                            continue
+                        c = (x * dims[1] + y) * dims[2] + z
+                        for s in range(start[c], start[c + 1]):
+                            j = order[s]
+                            if j == i:
+                                continue
+                            d = 0.0
+                            for a in range(3):
+                                diff = points[j, a] - points[i, a]
+                                d += diff * diff
+                            if d < best[k - 1]:
+                                m = k - 1
+                                while m > 0 and best[m - 1] > d:
+                                    best[m] = best[m - 1]
+                                    out_index[i, m] = out_index[i, m - 1]
+                                    m -= 1
+                                best[m] = d
+                                out_index[i, m] = j
+            covered = ring >= dims[0] and ring >= dims[1] and ring >= dims[2]
+            reach = ring * cell + margin
+            if covered or (out_index[i, k - 1] >= 0 and best[k - 1] <= reach * reach):
+                break
+            ring += 1
+        for m in range(k):
+            out_dist[i, m] = math.sqrt(best[m])
+
+
+@numba.njit(cache=True, parallel=True)
+def nearest_neighbors(points, point_offsets, k):
+    """The ``k`` nearest other points of every point, cloud by cloud (clouds in parallel).
+
+    Args:
+        points: ``(N, 3)`` float64, the clouds back to back.
+        point_offsets: ``(C+1,)`` int64 point range of each cloud (each with more than ``k`` points).
+        k: neighbours per point.
+
+    Returns:
+        ``index (N, k)`` int64 cloud-local indices and ``dist (N, k)`` float64 Euclidean
+        distances, ascending; a point's own index is never among its neighbours, its duplicates are.
+    """
+    index = np.empty((points.shape[0], k), dtype=np.int64)
+    dist = np.empty((points.shape[0], k))
+    for c in numba.prange(point_offsets.shape[0] - 1):
+        p0, p1 = point_offsets[c], point_offsets[c + 1]
+        _cloud_knn(points[p0:p1], k, index[p0:p1], dist[p0:p1])
+    return index, dist

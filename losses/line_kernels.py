@@ -205,6 +205,7 @@ def _scan_line(
     cell_xyzr,
     scratch_entry,
     scratch_d2,
+    scratch_near,
     out_anchor,
     out_weight,
     out_start,
@@ -214,7 +215,8 @@ def _scan_line(
 
     Intersection ``j`` of the line is written to row ``out_start + j`` of ``out_anchor`` and
     ``out_weight`` when that row is below ``out_stop``; the ones beyond are only counted.
-    ``scratch_entry`` and ``scratch_d2`` hold at least as many rows as the grid has entries.
+    ``scratch_entry`` and ``scratch_d2`` hold at least as many rows as the grid has entries,
+    ``scratch_near`` ``k``.
     """
     ox, oy, oz = origins[line, 0], origins[line, 1], origins[line, 2]
     ux, uy, uz = dirs[line, 0], dirs[line, 1], dirs[line, 2]
@@ -297,6 +299,7 @@ def _scan_line(
             if dn >= limit:
                 ok = False
                 break
+            scratch_near[m] = dn
             total += dn
         if not ok:
             continue
@@ -311,8 +314,7 @@ def _scan_line(
         if total > 0.0:
             out_weight[row, 0] = d / total
             for m in range(k):
-                dn = _line_distance(points, neighbors[i, m], ox, oy, oz, ux, uy, uz, eps2)
-                out_weight[row, m + 1] = dn / total
+                out_weight[row, m + 1] = scratch_near[m] / total
         else:
             for m in range(k + 1):
                 out_weight[row, m] = 1.0 / (k + 1)
@@ -383,6 +385,8 @@ def _scan_lines(
     entries = cell_start[c1 - 1] - cell_start[c0]
     scratch_entry = np.empty(entries + 1, dtype=np.int64)
     scratch_d2 = np.empty(entries + 1)
+    scratch_near = np.empty(cloud_neighbors.shape[1])
+    cloud_min, cloud_dims, cloud_cell, cloud_start = grid_min[cloud], dims[cloud], cells[cloud], cell_start[c0:c1]
     row = out_start
     for line in range(first, stop):
         n = _scan_line(
@@ -394,14 +398,15 @@ def _scan_lines(
             cloud_neighbors,
             mode,
             eps2,
-            grid_min[cloud],
-            dims[cloud],
-            cells[cloud],
-            cell_start[c0:c1],
+            cloud_min,
+            cloud_dims,
+            cloud_cell,
+            cloud_start,
             cell_points,
             cell_xyzr,
             scratch_entry,
             scratch_d2,
+            scratch_near,
             out_anchor,
             out_weight,
             row,
@@ -774,9 +779,14 @@ def _cloud_knn(points, k, out_index, out_dist):
     for i in range(n):
         order[fill[cell_of[i]]] = i
         fill[cell_of[i]] += 1
+    sorted_points = np.empty((n, 3))
+    for s in range(n):
+        for a in range(3):
+            sorted_points[s, a] = points[order[s], a]
     best = np.empty(k)
     home = np.empty(3, dtype=np.int64)
-    for i in range(n):
+    for query in range(n):  # in cell order, so that neighbouring queries read the same cells
+        i = order[query]
         c = cell_of[i]
         margin = np.inf
         for a in range(2, -1, -1):
@@ -796,16 +806,23 @@ def _cloud_knn(points, k, out_index, out_dist):
                     for z in range(max(home[2] - ring, 0), min(home[2] + ring, dims[2] - 1) + 1):
                         if not (on_shell or abs(z - home[2]) == ring):
                             continue
+                        # Skip a cell that cannot hold a point closer than the k-th found so far.
+                        gap = 0.0
+                        for a, index in ((0, x), (1, y), (2, z)):
+                            below = lo[a] + index * cell - points[i, a]
+                            above = points[i, a] - lo[a] - (index + 1) * cell
+                            step = max(below, above, 0.0)
+                            gap += step * step
+                        if gap > best[k - 1]:
+                            continue
                         c = (x * dims[1] + y) * dims[2] + z
                         for s in range(start[c], start[c + 1]):
-                            j = order[s]
-                            if j == i:
-                                continue
                             d = 0.0
                             for a in range(3):
-                                diff = points[j, a] - points[i, a]
+                                diff = sorted_points[s, a] - points[i, a]
                                 d += diff * diff
-                            if d < best[k - 1]:
+                            j = order[s]
+                            if d < best[k - 1] and j != i:
                                 m = k - 1
                                 while m > 0 and best[m - 1] > d:
                                     best[m] = best[m - 1]

@@ -15,14 +15,18 @@ For ``L`` random lines ``l`` (see :mod:`losses.lines`):
    recomputed every call) and ``w_l = exp(-| |S_l| - |T_l| | / 2)``. The metric is the mean of
    ``F_l`` over the lines that meet both clouds.
 
-Steps 1 and 2 only choose indices and detached weights; torch gathers the points, so memory
-is linear in ``N + L`` and the backward pass is a sparse scatter. Two backends choose them
-(``backend`` option): ``numba`` (:mod:`losses.line_kernels`, a compiled grid walk that only
-examines point-line pairs that can interact, on the CPU, threads across samples and lines) and
-``torch`` (:mod:`losses.line_torch`, an all-pairs test in chunks on the tensors' device, batched,
-no per-sample host round trip). ``auto`` (default) takes ``torch`` for tensors on an accelerator
-and ``numba`` on the CPU. For the same lines both give the same value and gradient up to float
-rounding. Half-precision inputs are evaluated in float32.
+Steps 1 and 2 only choose indices and detached weights, so memory is linear in ``N + L``. Two
+backends choose them (``backend`` option): ``numba`` (:mod:`losses.line_kernels`, a compiled grid
+walk that only examines point-line pairs that can interact, on the CPU, threads across samples
+and lines) and ``torch`` (:mod:`losses.line_torch`, an all-pairs test in chunks on the tensors'
+device, batched, no per-sample host round trip). ``auto`` (default) takes ``torch`` for tensors
+on an accelerator and ``numba`` on the CPU. With ``numba`` and the settings of
+:func:`fused_path` (the paper's and ``linereg``'s among them), the kernels also match the
+intersections and compute the value with its gradient (:class:`FusedLineValue`), and the
+backward pass only scales that gradient; otherwise torch gathers the points and autograd
+differentiates steps 2-3 (a sparse scatter). For the same
+lines both give the same value and gradient up to float rounding. Half-precision inputs are
+evaluated in float32.
 
 Options reproduce every ablation of the paper (Table 2) and the authors' released code:
 

@@ -1,9 +1,12 @@
 """Compiled (numba) index kernels of the line-intersection metric.
 
-Nothing here is differentiable, and nothing needs to be: the kernels only decide *which*
-points form each intersection and *which* intersections are matched. They return indices and
-detached convex weights; the loss gathers the points with torch so autograd sees every
-coordinate that enters the value.
+The kernels decide *which* points form each intersection and *which* intersections are matched
+(indices and detached convex weights). :func:`welsch_lines` then computes the value of the
+paper's per-line reduction and, since the weights are constants, its gradient w.r.t. every point
+in closed form; the loss wraps it in a ``torch.autograd.Function``. For the other settings the
+loss gathers the points with torch and autograd differentiates the value. The k nearest
+neighbours of the points come from :func:`nearest_neighbors` (a uniform grid, searched ring by
+ring).
 
 Candidate search, without ever testing all point-line pairs:
 

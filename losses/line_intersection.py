@@ -657,11 +657,11 @@ class FusedLineValue(torch.autograd.Function):
             for b in range(batch):
                 c = side * batch + b
                 padded[b, : plan.point_lengths[c]] = grad[plan.point_offsets[c] : plan.point_offsets[c + 1]]
-            grads.append(torch.from_numpy(padded).to(cloud.dtype))
+            grads.append(torch.from_numpy(padded).to(cloud.device, cloud.dtype))
         ctx.save_for_backward(*grads)
         scale_t, counts_t = torch.from_numpy(scale), torch.from_numpy(counts)
         ctx.mark_non_differentiable(scale_t, counts_t)
-        return torch.from_numpy(value).to(src.dtype), scale_t, counts_t
+        return torch.from_numpy(value).to(src.device, src.dtype), scale_t, counts_t
 
     @staticmethod
     def backward(ctx, grad_value, _grad_scale, _grad_counts):

@@ -15,14 +15,18 @@ For ``L`` random lines ``l`` (see :mod:`linereg.losses.lines`):
    recomputed every call) and ``w_l = exp(-| |S_l| - |T_l| | / 2)``. The metric is the mean of
    ``F_l`` over the lines that meet both clouds.
 
-Steps 1 and 2 only choose indices and detached weights; torch gathers the points, so memory
-is linear in ``N + L`` and the backward pass is a sparse scatter. Two backends choose them
-(``backend`` option): ``numba`` (:mod:`linereg.losses.line_kernels`, a compiled grid walk that only
-examines point-line pairs that can interact, on the CPU, threads across samples and lines) and
-``torch`` (:mod:`linereg.losses.line_torch`, an all-pairs test in chunks on the tensors' device, batched,
-no per-sample host round trip). ``auto`` (default) takes ``torch`` for tensors on an accelerator
-and ``numba`` on the CPU. For the same lines both give the same value and gradient up to float
-rounding. Half-precision inputs are evaluated in float32.
+Steps 1 and 2 only choose indices and detached weights, so memory is linear in ``N + L``. Two
+backends choose them (``backend`` option): ``numba`` (:mod:`linereg.losses.line_kernels`, a compiled grid
+walk that only examines point-line pairs that can interact, on the CPU, threads across samples
+and lines) and ``torch`` (:mod:`linereg.losses.line_torch`, an all-pairs test in chunks on the tensors'
+device, batched, no per-sample host round trip). ``auto`` (default) takes ``torch`` for tensors
+on an accelerator and ``numba`` on the CPU. With ``numba`` and the settings of
+:func:`fused_path` (the paper's and ``linereg``'s among them), the kernels also match the
+intersections and compute the value with its gradient (:class:`FusedLineValue`), and the
+backward pass only scales that gradient; otherwise torch gathers the points and autograd
+differentiates steps 2-3 (a sparse scatter). For the same
+lines both give the same value and gradient up to float rounding. Half-precision inputs are
+evaluated in float32.
 
 Options reproduce every ablation of the paper (Table 2) and the authors' released code:
 
@@ -82,7 +86,6 @@ import numpy as np
 import torch
 
 from linereg.checks import check_lengths, check_points, check_same_batch
-from linereg.pointcloud import knn
 
 from . import line_kernels, line_torch
 from .base import LOSSES, AlignmentLoss
@@ -285,26 +288,56 @@ def _neighbors(
     cloud: torch.Tensor, lengths: torch.Tensor, k: int, backend: str
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """``valid (B, N)``, ``neighbors (B, N, k)`` (sample-local) and their ``distances (B, N, k)``:
-    a KD-tree per sample for ``numba``, a masked brute-force search for ``torch``."""
+    a grid search per sample for ``numba`` (:func:`linereg.losses.line_kernels.nearest_neighbors`), a
+    masked brute-force search for ``torch``; rows of padding points are zero for ``numba``."""
     batch, n = cloud.shape[:2]
     valid = torch.arange(n, device=cloud.device)[None] < lengths.to(cloud.device)[:, None]
     if backend == "torch":
         idx, dist = line_torch.masked_knn(cloud, valid, k)
         return valid, idx, dist
-    if bool((lengths == n).all()):
-        found = knn(cloud, cloud, k, exclude_self=True)
-        return valid, found.idx, found.dists
+    counts = lengths.tolist()
+    offsets = np.concatenate([[0], np.cumsum(counts)])
+    stacked = cloud[valid].numpy() if sum(counts) < batch * n else cloud.reshape(-1, 3).numpy()
+    found, found_dist = line_kernels.nearest_neighbors(stacked, offsets, k)
+    if offsets[-1] == batch * n:
+        return valid, torch.from_numpy(found).view(batch, n, k), torch.from_numpy(found_dist).view(batch, n, k)
     idx = torch.zeros(batch, n, k, dtype=torch.int64)
     dist = torch.zeros(batch, n, k, dtype=torch.float64)
-    for b, length in enumerate(lengths.tolist()):
-        found = knn(cloud[b, :length], cloud[b, :length], k, exclude_self=True)
-        idx[b, :length], dist[b, :length] = found.idx, found.dists
+    idx[valid], dist[valid] = torch.from_numpy(found), torch.from_numpy(found_dist)
     return valid, idx, dist
 
 
-def _numba_hits(
+@dataclass
+class KernelPlan:
+    """The index decisions of the numba kernel for a batch: the inputs and output of
+    :func:`linereg.losses.line_kernels.line_intersections` (clouds ordered ``src_0 .. src_{B-1},
+    tgt_0 .. tgt_{B-1}``, cloud ``c`` holding the first ``point_lengths[c]`` points of its
+    sample; sample ``b`` on both sides uses the same lines)."""
+
+    offsets: np.ndarray
+    anchors: np.ndarray
+    weights: np.ndarray
+    line_offsets: np.ndarray
+    line_ids: np.ndarray
+    point_offsets: np.ndarray
+    neighbors: np.ndarray
+
+    @property
+    def point_lengths(self) -> np.ndarray:
+        return np.diff(self.point_offsets)
+
+
+def _stacked_points(clouds: list[torch.Tensor], lengths: np.ndarray) -> np.ndarray:
+    """``(sum lengths, 3)`` float64 numpy: the valid rows of every sample of ``clouds``
+    (``[src (B, N, 3), tgt (B, M, 3)]``), in the plan's cloud order."""
+    batch = clouds[0].shape[0]
+    rows = [cloud[b, : lengths[side * batch + b]] for side, cloud in enumerate(clouds) for b in range(batch)]
+    return torch.cat(rows).detach().to("cpu", torch.float64).numpy()
+
+
+def _numba_plan(
     clouds: list[torch.Tensor], valids: list[torch.Tensor], radii, neighbors, lines: LineBatch, options
-) -> list[Hits]:
+) -> KernelPlan:
     """Intersections of the lines with every cloud of both sides, one kernel call for all.
 
     Args:
@@ -334,6 +367,7 @@ def _numba_hits(
     point_offsets = np.concatenate([[0], np.cumsum([len(p) for p in points])])
     threads = numba.get_num_threads()
     chunk = int(np.clip(line_offsets[-1] // (8 * threads), 64, 1024))
+    stacked_neighbors = np.ascontiguousarray(np.concatenate(nbrs))
     offsets, anchors, weights = line_kernels.line_intersections(
         np.concatenate(line_o),
         np.concatenate(line_d),
@@ -341,22 +375,31 @@ def _numba_hits(
         np.concatenate(points),
         point_offsets,
         np.concatenate(radius),
-        np.ascontiguousarray(np.concatenate(nbrs)),
+        stacked_neighbors,
         mode,
         options.distance_eps,
         np.array(cells),
         chunk,
     )
-    per_line = np.diff(offsets)
-    hit_line = np.repeat(np.concatenate(line_ids), per_line)
-    cloud_of_line = np.repeat(np.arange(len(points)), np.diff(line_offsets))
+    return KernelPlan(
+        offsets, anchors, weights, line_offsets, np.concatenate(line_ids), point_offsets, stacked_neighbors
+    )
+
+
+def _plan_hits(plan: KernelPlan, clouds: list[torch.Tensor], neighbors: list[torch.Tensor], mode: int) -> list[Hits]:
+    """The plan as one :class:`Hits` per side (rows of the flattened padded clouds)."""
+    batch = clouds[0].shape[0]
+    per_line = np.diff(plan.offsets)
+    hit_line = np.repeat(plan.line_ids, per_line)
+    cloud_of_line = np.repeat(np.arange(2 * batch), np.diff(plan.line_offsets))
     hit_cloud = np.repeat(cloud_of_line, per_line)
+    line_offsets, offsets = plan.line_offsets, plan.offsets
     result = []
     for side, cloud in enumerate(clouds):
         n = cloud.shape[1]
         rows = slice(offsets[line_offsets[side * batch]], offsets[line_offsets[(side + 1) * batch]])
         sample = hit_cloud[rows] - side * batch
-        anchor = anchors[rows]
+        anchor = plan.anchors[rows]
         members = anchor[:, None]
         if mode != line_kernels.MODE_CANDIDATES:
             members = np.concatenate([members, neighbors[side].numpy()[sample, anchor]], axis=1)
@@ -364,7 +407,7 @@ def _numba_hits(
             Hits(
                 torch.from_numpy(hit_line[rows]),
                 torch.from_numpy(members + (sample * n)[:, None]),
-                torch.from_numpy(weights[rows]),
+                torch.from_numpy(plan.weights[rows]),
             )
         )
     return result
@@ -413,26 +456,27 @@ class LinePairs:
     lines: LineBatch
 
 
-def _line_pairs(src, tgt, src_lengths, tgt_lengths, options, generator, lines) -> LinePairs:
-    """Steps 1 and 2 for a batch (inputs already validated, float32 or wider)."""
+def _line_batch(src, tgt, src_lengths, tgt_lengths, options, generator, lines) -> LineBatch:
+    """The explicit ``lines`` or the sampler's, on the clouds' device."""
     device = src.device
-    backend = options.resolved_backend(device)
-    batch = src.shape[0]
     if lines is not None:
-        line_batch = _explicit_lines(lines, batch, device)
-    else:
-        origins, dirs, counts = sample_line_batch(
-            src,
-            tgt,
-            src_lengths.to(device),
-            tgt_lengths.to(device),
-            options.num_lines,
-            generator,
-            sampling=options.sampling,
-            radius_factor=options.radius_factor,
-        )
-        line_batch = LineBatch(origins, dirs, counts)
-    n_lines = line_batch.origins.shape[1]
+        return _explicit_lines(lines, src.shape[0], device)
+    origins, dirs, counts = sample_line_batch(
+        src,
+        tgt,
+        src_lengths.to(device),
+        tgt_lengths.to(device),
+        options.num_lines,
+        generator,
+        sampling=options.sampling,
+        radius_factor=options.radius_factor,
+    )
+    return LineBatch(origins, dirs, counts)
+
+
+def _cloud_setups(src, tgt, src_lengths, tgt_lengths, options, backend):
+    """Per side (source, target): detached float64 points (on the CPU for ``numba``), ``valid``
+    masks, neighbours and cylinder radii."""
     clouds, valids, radii, neighbors = [], [], [], []
     for cloud, lengths in ((src, src_lengths), (tgt, tgt_lengths)):
         coords = cloud.detach().double()
@@ -443,10 +487,24 @@ def _line_pairs(src, tgt, src_lengths, tgt_lengths, options, generator, lines) -
         valids.append(valid)
         neighbors.append(nbr)
         radii.append(_cylinder_radius(coords, valid, nbr, dist, options))
+    return clouds, valids, radii, neighbors
+
+
+def _line_pairs(src, tgt, src_lengths, tgt_lengths, options, generator, lines) -> LinePairs:
+    """Steps 1 and 2 for a batch (inputs already validated, float32 or wider)."""
+    device = src.device
+    backend = options.resolved_backend(device)
+    batch = src.shape[0]
+    line_batch = _line_batch(src, tgt, src_lengths, tgt_lengths, options, generator, lines)
+    n_lines = line_batch.origins.shape[1]
+    clouds, valids, radii, neighbors = _cloud_setups(src, tgt, src_lengths, tgt_lengths, options, backend)
     mode = INTERSECTIONS[options.intersection]
     if backend == "numba":
-        hits = _numba_hits(clouds, valids, radii, neighbors, line_batch, options)
-        hits = [Hits(h.line.to(device), h.members.to(device), h.weights.to(device)) for h in hits]
+        plan = _numba_plan(clouds, valids, radii, neighbors, line_batch, options)
+        hits = [
+            Hits(h.line.to(device), h.members.to(device), h.weights.to(device))
+            for h in _plan_hits(plan, clouds, neighbors, mode)
+        ]
     else:
         line_valid, eps2 = line_batch.valid(), options.distance_eps
         hits = [
@@ -559,6 +617,69 @@ def _values(pairs: LinePairs, options: LineMetricOptions, anchor: torch.Tensor) 
     return value, torch.cat([stats, scale.detach().double()[:, None]], dim=1)
 
 
+def fused_path(options: LineMetricOptions, device: torch.device) -> bool:
+    """Whether the numba kernels compute the value and its gradient themselves
+    (:class:`FusedLineValue`): the numba backend with constant intersection weights and the
+    per-line reduction; other settings take the torch formula of :func:`_values`."""
+    constant_weights = options.detach_weights or options.intersection in ("candidates", "pierce")
+    return options.resolved_backend(device) == "numba" and constant_weights and options.reduction == "lines"
+
+
+class FusedLineValue(torch.autograd.Function):
+    """Step 3 for a fixed :class:`KernelPlan`: ``(B,)`` values, ``(B,)`` scales ``nu`` and
+    ``(B, 5)`` hit counts (see :func:`linereg.losses.line_kernels.welsch_lines`) from ``src (B, N, 3)``
+    and ``tgt (B, M, 3)``; the kernel writes the gradient w.r.t. the points during the forward
+    pass, and the backward pass only scales it by the incoming ``(B,)`` gradient."""
+
+    @staticmethod
+    def forward(ctx, src, tgt, plan: KernelPlan, options: LineMetricOptions):
+        batch = src.shape[0]
+        points = _stacked_points([src, tgt], plan.point_lengths)
+        value, grad, scale, counts = line_kernels.welsch_lines(
+            plan.offsets,
+            plan.anchors,
+            plan.weights,
+            plan.line_offsets,
+            points,
+            plan.point_offsets,
+            plan.neighbors,
+            batch,
+            -1 if options.max_hits is None else options.max_hits,
+            options.line_weight,
+            options.welsch_input == "squared",
+            options.nu0,
+            0.0 if options.nu is None else options.nu,
+            float(torch.finfo(src.dtype).tiny),
+        )
+        grads = []
+        for side, cloud in enumerate((src, tgt)):
+            padded = np.zeros((batch, *cloud.shape[1:]))
+            for b in range(batch):
+                c = side * batch + b
+                padded[b, : plan.point_lengths[c]] = grad[plan.point_offsets[c] : plan.point_offsets[c + 1]]
+            grads.append(torch.from_numpy(padded).to(cloud.device, cloud.dtype))
+        ctx.save_for_backward(*grads)
+        scale_t, counts_t = torch.from_numpy(scale), torch.from_numpy(counts)
+        ctx.mark_non_differentiable(scale_t, counts_t)
+        return torch.from_numpy(value).to(src.device, src.dtype), scale_t, counts_t
+
+    @staticmethod
+    def backward(ctx, grad_value, _grad_scale, _grad_counts):
+        grad_src, grad_tgt = ctx.saved_tensors
+        weight = grad_value[:, None, None]
+        return weight * grad_src, weight * grad_tgt, None, None
+
+
+def _fused_values(src, tgt, src_lengths, tgt_lengths, options, generator, lines):
+    """Steps 1-3 on the numba path (:func:`fused_path`): ``(B,)`` values and ``(B, 7)`` statistics."""
+    line_batch = _line_batch(src, tgt, src_lengths, tgt_lengths, options, generator, lines)
+    clouds, valids, radii, neighbors = _cloud_setups(src, tgt, src_lengths, tgt_lengths, options, "numba")
+    plan = _numba_plan(clouds, valids, radii, neighbors, line_batch, options)
+    value, scale, counts = FusedLineValue.apply(src, tgt, plan, options)
+    stats = torch.cat([torch.from_numpy(line_batch.counts)[:, None], counts], dim=1).double()
+    return value, torch.cat([stats, scale[:, None]], dim=1)
+
+
 def _checked_inputs(src, tgt, src_lengths, tgt_lengths, options):
     """Validate the batch; return both clouds in float32 or wider and the lengths (CPU int64)."""
     check_points(src, "src", batched=True, min_points=options.k + 1)
@@ -618,8 +739,12 @@ def line_intersection_metric(
     """
     options = options or LineMetricOptions()
     work_src, work_tgt, src_lengths, tgt_lengths = _checked_inputs(src, tgt, src_lengths, tgt_lengths, options)
-    pairs = _line_pairs(work_src, work_tgt, src_lengths, tgt_lengths, options, generator or _fresh_generator(), lines)
-    value, stats = _values(pairs, options, work_src)
+    generator = generator or _fresh_generator()
+    if fused_path(options, work_src.device):
+        value, stats = _fused_values(work_src, work_tgt, src_lengths, tgt_lengths, options, generator, lines)
+    else:
+        pairs = _line_pairs(work_src, work_tgt, src_lengths, tgt_lengths, options, generator, lines)
+        value, stats = _values(pairs, options, work_src)
     mean_stats = dict(zip(STAT_KEYS, stats.mean(dim=0).tolist(), strict=True))
     return LineMetricResult(value=value.to(src.dtype), stats=mean_stats)
 

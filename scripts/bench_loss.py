@@ -6,6 +6,7 @@
     python scripts/bench_loss.py --backend torch      # the device-native backend (here on the CPU)
     python scripts/bench_loss.py --device cuda        # on a GPU (backend auto = torch)
     python scripts/bench_loss.py --batch 8 --points 1024 --lines 15000   # threads x load table
+    python scripts/bench_loss.py --profile --points 1024 --lines 20000   # where the time goes
 
 Each row is one pair (source and target with ``N`` points each, ``L`` lines), timed as the
 median over ``--repeats`` runs after a warm-up. Every row also times, in the same process, the
@@ -21,6 +22,10 @@ where ``N * L`` is at most ``--dense-limit``; ``dense / ours`` is its time divid
 ``--batch B`` instead times a batch of ``B`` pairs with 1 and 2 threads (torch and numba alike),
 on a quiet machine and with another process spinning on one core (started and stopped here).
 
+``--profile`` instead profiles ``--repeats`` forward+backward calls per row with ``cProfile`` on one
+thread, timed in CPU time of the process (steady on a machine busy with other jobs, where wall
+times are not), and prints the functions that take the most time of their own.
+
 OpenMP threads that spin while they wait make every parallel region wait for a descheduled
 thread on a busy machine; the script sets ``OMP_WAIT_POLICY=PASSIVE`` before importing torch
 unless the variable is already set (the header prints it).
@@ -29,9 +34,11 @@ unless the variable is already set (the header prints it).
 from __future__ import annotations
 
 import argparse
+import cProfile
 import json
 import math
 import os
+import pstats
 import statistics
 import subprocess
 import sys
@@ -247,6 +254,34 @@ def batch_table(args) -> None:
                 hog.wait()
 
 
+def profile_table(args) -> None:
+    """CPU milliseconds per forward+backward call, in total and per function (own time), one thread."""
+    set_threads(1)
+    print(
+        f"torch {torch.__version__}, numba {numba.__version__}, 1 thread, CPU time (cProfile, process_time), "
+        f"device {args.device}, backend {args.backend}, variant {args.variant}, {args.repeats} calls per row"
+    )
+    for n in args.points:
+        src, tgt = make_pair(n, args.device)
+        for n_lines in args.lines:
+            options = LineMetricOptions.for_variant(args.variant, num_lines=n_lines, backend=args.backend)
+            time_sparse(src, tgt, options, 1, args.device)  # compile and warm up outside the profile
+            profiler = cProfile.Profile(time.process_time)
+            profiler.enable()
+            time_sparse(src, tgt, options, args.repeats - 1, args.device)
+            profiler.disable()
+            stats = pstats.Stats(profiler)
+            calls = args.repeats
+            total = stats.total_tt * 1000 / calls
+            print(f"\n{n} points, {n_lines} lines: {total:.1f} ms per call")
+            print("| function (own time) | ms per call | share |")
+            print("|---|---:|---:|")
+            rows = sorted(stats.stats.items(), key=lambda item: item[1][2], reverse=True)
+            for (filename, line, name), (_, _, own, _, _) in rows[:12]:
+                where = f"{Path(filename).name}:{line}({name})" if line else name
+                print(f"| {where} | {own * 1000 / calls:.2f} | {own * 1000 / calls / total:.0%} |")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--points", type=int, nargs="+", default=[1024, 5000, 10000, 100000])
@@ -258,6 +293,7 @@ def main() -> None:
     parser.add_argument("--variant", default="paper", choices=["paper", "authors", "linereg"])
     parser.add_argument("--threads", type=int, help="torch and numba threads (default: as configured)")
     parser.add_argument("--batch", type=int, help="time a batch of this many pairs with 1 and 2 threads instead")
+    parser.add_argument("--profile", action="store_true", help="profile the calls of each row instead (one thread)")
     parser.add_argument("--json", action="store_true", help="print one JSON object per row instead of a table")
     parser.add_argument("--memory-probe", type=int, nargs=2, help=argparse.SUPPRESS)
     args = parser.parse_args()
@@ -270,6 +306,9 @@ def main() -> None:
         set_threads(args.threads)
     if args.batch is not None:
         batch_table(args)
+        return
+    if args.profile:
+        profile_table(args)
         return
 
     rows = []

@@ -565,8 +565,9 @@ class RobustOptions:
         distinct_deg: rotation gap between two candidates that count as different basins.
         max_cost: selection cost above which the fit itself is doubtful.
         min_fitness: fitness (as Open3D's, on the solver's clouds) below which the fit is
-            doubtful: a right pose of a view inside the whole target scores about 0.99, a wrong
-            basin 0.75-0.9; pairs with partial overlap on both sides always get the second round.
+            doubtful: a right pose of a view inside the whole target scores 0.99-1, a wrong basin
+            0.7-0.85 (docs/registration.md); pairs with partial overlap on both sides always get
+            the second round.
         fitness_spacings: inlier distance of that fitness, in target point spacings.
         escalate_factor: coarse iterations multiplier of the second round.
         refine_iterations: optional Adam iterations of the line metric (candidate
@@ -643,7 +644,8 @@ class RobustRegistration(_Solver):
     """The ``register`` default: multi-start CD-W, Welsch IRLS, fixed-scale selection.
 
     1. Both clouds centred (:func:`~train.methods.run_centered`) and scaled into the unit ball.
-    2. Coarse: Adam on CD-W (``nu0`` 2) from every start at once, on FPS subsets.
+    2. Coarse: Adam on CD-W (``nu0`` 2), two-sided and source-to-target only (``coarse_sides``),
+       from every start at once, on FPS subsets.
     3. Polish: Welsch IRLS from every coarse result on the full clouds (``num_points``).
     4. Select the candidate with the lowest :func:`fixed_scale_fit`. When the choice is doubtful
        (another basin scores nearly as well, or the fit is poor), run a second round from the
@@ -653,8 +655,8 @@ class RobustRegistration(_Solver):
     The result's ``info`` holds ``fitness`` and ``inlier_rmse`` (Open3D's definitions, within
     ``fitness_threshold`` in input units; default 3 times the target's median point spacing),
     ``converged`` (the final choice is not doubtful), ``confidence`` (``1 - best cost /
-    cost of the best distinct basin``; 1 without a rival), ``rounds`` and ``starts`` used, the
-    selection ``cost``, and ``warnings`` (collinear clouds).
+    cost of the best distinct basin``; 1 without a rival), ``rounds``, ``starts`` (candidates:
+    starts x coarse sides), the selection ``cost``, and ``warnings`` (collinear clouds).
 
     Args:
         options: :class:`RobustOptions` or a mapping of its fields.

@@ -394,7 +394,9 @@ def fixed_scale_fit(poses: torch.Tensor, src: torch.Tensor, nearest: NearestTarg
     return (1.0 - torch.exp(-distances.square() / (2.0 * nu * nu))).mean(dim=1)
 
 
-def chamfer_welsch_batched(x: torch.Tensor, y: torch.Tensor, nu0: float) -> torch.Tensor:
+def chamfer_welsch_batched(
+    x: torch.Tensor, y: torch.Tensor, nu0: float, two_sided: torch.Tensor | None = None
+) -> torch.Tensor:
     """CD-W (:func:`linereg.losses.chamfer.chamfer_welsch_distance`) of small batched clouds.
 
     The same value and gradient, with the nearest neighbours of all ``B`` pairs found by one
@@ -405,28 +407,40 @@ def chamfer_welsch_batched(x: torch.Tensor, y: torch.Tensor, nu0: float) -> torc
         x: ``(B, N, 3)`` moved sources.
         y: ``(B, M, 3)`` targets.
         nu0: Welsch scale factor of the median nearest distance.
+        two_sided: ``(B,)`` booleans; where False, only the source-to-target term counts (and
+            sets the median): the model of a partial source inside a whole target, whose every
+            point has a target neighbour but not the reverse. ``None``: all two-sided.
 
     Returns:
         ``(B,)`` values.
     """
     with torch.no_grad():  # the search in float32: only the indices are kept
         distances = torch.cdist(x.float(), y.float())
-        x_to_y, y_to_x = distances.argmin(dim=2), distances.argmin(dim=1)
+        x_to_y, y_to_x = distances.min(dim=2).indices, distances.min(dim=1).indices
     batch = torch.arange(len(x), device=x.device)[:, None]
     d_xy = (x - y[batch, x_to_y]).norm(dim=-1)
     d_yx = (y - x[batch, y_to_x]).norm(dim=-1)
-    nu = (nu0 * torch.cat([d_xy, d_yx], dim=1).detach().median(dim=1).values).clamp_min(1e-12)[:, None]
-    return welsch(d_xy, nu).mean(dim=1) + welsch(d_yx, nu).mean(dim=1)
+    median = torch.cat([d_xy, d_yx], dim=1).detach().median(dim=1).values
+    if two_sided is not None:
+        median = torch.where(two_sided, median, d_xy.detach().median(dim=1).values)
+    nu = (nu0 * median).clamp_min(1e-12)[:, None]
+    target_term = welsch(d_yx, nu).mean(dim=1)
+    if two_sided is not None:
+        target_term = target_term * two_sided
+    return welsch(d_xy, nu).mean(dim=1) + target_term
 
 
 class _BatchedChamferWelsch:
-    """:func:`chamfer_welsch_batched` as an alignment metric for :func:`adam_stage`."""
+    """:func:`chamfer_welsch_batched` as an alignment metric for :func:`adam_stage`; ``two_sided``
+    as there, one flag per pose of the batch."""
 
-    def __init__(self, nu0: float) -> None:
+    def __init__(self, nu0: float, two_sided: torch.Tensor | None = None) -> None:
         self.nu0 = nu0
+        self.two_sided = two_sided
 
     def metric(self, src: torch.Tensor, tgt: torch.Tensor) -> tuple[torch.Tensor, dict[str, Any]]:
-        return chamfer_welsch_batched(src, tgt, self.nu0), {}
+        two_sided = None if self.two_sided is None else self.two_sided.to(src.device)
+        return chamfer_welsch_batched(src, tgt, self.nu0, two_sided), {}
 
 
 def alignment_quality(src: np.ndarray, tgt: np.ndarray, transform: np.ndarray, threshold: float) -> dict[str, float]:
@@ -533,6 +547,9 @@ class RobustOptions:
         coarse_iterations: Adam iterations of CD-W from every start, all starts at once.
         coarse_lr: peak learning rate (cosine decay) of the coarse stage.
         coarse_nu0: CD-W's ``nu0`` (a wide window: robust to partial overlap).
+        coarse_sides: every start runs once per entry, all in one batch: ``"both"`` (CD-W, both
+            directions) and/or ``"source"`` (the source-to-target term alone: a partial view
+            of a whole target, whose centroid is off the target's; :func:`chamfer_welsch_batched`).
         polish_steps: Welsch IRLS steps from every coarse result (:func:`welsch_irls`) with
             the scales of :func:`polish_scales`.
         polish_nu: first IRLS scale.
@@ -540,10 +557,17 @@ class RobustOptions:
         select_nu: scale of the selection cost :func:`fixed_scale_fit`.
         doubt_ratio: the pose is doubtful when another candidate more than ``distinct_deg``
             away scores within this factor of the best cost, or the best cost exceeds
-            ``max_cost``; a doubtful first round triggers a second one from the 24 cube
-            rotations with ``escalate_factor`` times the coarse iterations.
+            ``max_cost``, or fewer than ``min_fitness`` of the source points lie within
+            ``fitness_spacings`` target point spacings of the target; a doubtful first round
+            triggers a second one from the 24 cube rotations with ``escalate_factor`` times the
+            coarse iterations.
         distinct_deg: rotation gap between two candidates that count as different basins.
         max_cost: selection cost above which the fit itself is doubtful.
+        min_fitness: fitness (as Open3D's, on the solver's clouds) below which the fit is
+            doubtful: a right pose of a view inside the whole target scores 0.99-1, a wrong basin
+            0.7-0.85 (docs/registration.md); pairs with partial overlap on both sides always get
+            the second round.
+        fitness_spacings: inlier distance of that fitness, in target point spacings.
         escalate_factor: coarse iterations multiplier of the second round.
         refine_iterations: optional Adam iterations of the line metric (candidate
             intersections, ``refine_lines`` lines, lr ``refine_lr``) after the selection; 0 skips.
@@ -554,6 +578,7 @@ class RobustOptions:
     coarse_iterations: int = 100
     coarse_lr: float = 0.03
     coarse_nu0: float = 2.0
+    coarse_sides: tuple[str, ...] = ("both", "source")
     polish_steps: int = 20
     polish_nu: float = 0.05
     polish_end: float = 0.3
@@ -561,6 +586,8 @@ class RobustOptions:
     doubt_ratio: float = 1.25
     distinct_deg: float = 10.0
     max_cost: float = 0.5
+    min_fitness: float = 0.95
+    fitness_spacings: float = 3.0
     escalate_factor: int = 2
     refine_iterations: int = 0
     refine_lines: int = 4000
@@ -576,6 +603,7 @@ class RobustOptions:
             "select_nu",
             "distinct_deg",
             "max_cost",
+            "fitness_spacings",
         )
         for name in positive:
             if not getattr(self, name) > 0:
@@ -583,10 +611,16 @@ class RobustOptions:
         for name in ("coarse_iterations", "polish_steps", "refine_iterations"):
             if getattr(self, name) < 0:
                 raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
+        if not 0 <= self.min_fitness <= 1:
+            raise ValueError(f"min_fitness must be in [0, 1], got {self.min_fitness}")
         if self.doubt_ratio < 1:
             raise ValueError(f"doubt_ratio must be >= 1, got {self.doubt_ratio}")
         if self.escalate_factor < 1:
             raise ValueError(f"escalate_factor must be >= 1, got {self.escalate_factor}")
+        sides = tuple(self.coarse_sides)
+        if not sides or set(sides) - {"both", "source"} or len(set(sides)) < len(sides):
+            raise ValueError(f"coarse_sides must be distinct entries of 'both' and 'source', got {self.coarse_sides!r}")
+        object.__setattr__(self, "coarse_sides", sides)
         start_poses(self.starts)
 
 
@@ -609,7 +643,8 @@ class RobustRegistration(_Solver):
     """The ``register`` default: multi-start CD-W, Welsch IRLS, fixed-scale selection.
 
     1. Both clouds centred (:func:`~linereg.registration.methods.run_centered`) and scaled into the unit ball.
-    2. Coarse: Adam on CD-W (``nu0`` 2) from every start at once, on FPS subsets.
+    2. Coarse: Adam on CD-W (``nu0`` 2), two-sided and source-to-target only (``coarse_sides``),
+       from every start at once, on FPS subsets.
     3. Polish: Welsch IRLS from every coarse result on the full clouds (``num_points``).
     4. Select the candidate with the lowest :func:`fixed_scale_fit`. When the choice is doubtful
        (another basin scores nearly as well, or the fit is poor), run a second round from the
@@ -619,8 +654,8 @@ class RobustRegistration(_Solver):
     The result's ``info`` holds ``fitness`` and ``inlier_rmse`` (Open3D's definitions, within
     ``fitness_threshold`` in input units; default 3 times the target's median point spacing),
     ``converged`` (the final choice is not doubtful), ``confidence`` (``1 - best cost /
-    cost of the best distinct basin``; 1 without a rival), ``rounds`` and ``starts`` used, the
-    selection ``cost``, and ``warnings`` (collinear clouds).
+    cost of the best distinct basin``; 1 without a rival), ``rounds``, ``starts`` (candidates:
+    starts x coarse sides), the selection ``cost``, and ``warnings`` (collinear clouds).
 
     Args:
         options: :class:`RobustOptions` or a mapping of its fields.
@@ -667,7 +702,6 @@ class RobustRegistration(_Solver):
         self.fitness_threshold = fitness_threshold
         self.monitor = monitor
         self.center = center
-        self._coarse_loss = _BatchedChamferWelsch(options.coarse_nu0)
         self._refine_loss = (
             build_loss(
                 {
@@ -715,19 +749,25 @@ class RobustRegistration(_Solver):
         """Coarse CD-W from every start, then IRLS polish: ``(K, 4, 4)`` candidates, costs ``(K,)``."""
         options = self.options
         stage = Stage(loss={}, iterations=iterations, lr=options.coarse_lr)
-        poses = adam_stage(stage, self._coarse_loss, src_coarse, tgt_coarse, starts.to(src))
+        two_sided = torch.tensor([side == "both" for side in options.coarse_sides]).repeat_interleave(len(starts))
+        loss = _BatchedChamferWelsch(options.coarse_nu0, two_sided)
+        starts = starts.to(src).repeat(len(options.coarse_sides), 1, 1)
+        poses = adam_stage(stage, loss, src_coarse, tgt_coarse, starts)
         poses = welsch_irls(poses, src, nearest, nus)
         return poses, fixed_scale_fit(poses, src, nearest, options.select_nu)
 
-    def _doubt(self, poses: torch.Tensor, costs: torch.Tensor) -> tuple[bool, float]:
+    def _doubt(self, poses: torch.Tensor, costs: torch.Tensor, src, nearest, inlier_distance) -> tuple[bool, float]:
         """``(doubtful, confidence)`` of the lowest-cost candidate (see :class:`RobustOptions`)."""
+        options = self.options
         best = int(costs.argmin())
-        rivals = rotation_error_deg(poses[:, :3, :3], poses[best, :3, :3]) > self.options.distinct_deg
+        distances, _ = nearest(transform_points(poses[best], src))
+        fitness = float((distances <= inlier_distance).double().mean())
+        poor = float(costs[best]) > options.max_cost or fitness < options.min_fitness
+        rivals = rotation_error_deg(poses[:, :3, :3], poses[best, :3, :3]) > options.distinct_deg
         if not bool(rivals.any()):
-            return bool(costs[best] > self.options.max_cost), 1.0
+            return poor, 1.0
         rival = float(costs[rivals].min())
-        doubtful = rival < self.options.doubt_ratio * float(costs[best]) or float(costs[best]) > self.options.max_cost
-        return doubtful, 1.0 - float(costs[best]) / max(rival, 1e-12)
+        return poor or rival < options.doubt_ratio * float(costs[best]), 1.0 - float(costs[best]) / max(rival, 1e-12)
 
     def _solve(self, src, tgt, src_normals, tgt_normals) -> MethodResult:
         options = self.options
@@ -736,17 +776,19 @@ class RobustRegistration(_Solver):
         src_coarse = _subsample(src_t, options.coarse_points)
         tgt_coarse = _subsample(tgt_t, 2 * options.coarse_points)
         nearest = NearestTarget(tgt_t)
-        nus = polish_scales(options, point_spacing(tgt_t))
+        spacing = point_spacing(tgt_t)
+        nus = polish_scales(options, spacing)
+        inlier_distance = options.fitness_spacings * spacing
         poses, costs = self._round(
             src_t, nearest, src_coarse, tgt_coarse, start_poses(options.starts), options.coarse_iterations, nus
         )
-        doubtful, confidence = self._doubt(poses, costs)
+        doubtful, confidence = self._doubt(poses, costs, src_t, nearest, inlier_distance)
         rounds = 1
         if doubtful:
             iterations = options.escalate_factor * options.coarse_iterations
             more, more_costs = self._round(src_t, nearest, src_coarse, tgt_coarse, cube_rotations(), iterations, nus)
             poses, costs = torch.cat([poses, more]), torch.cat([costs, more_costs])
-            doubtful, confidence = self._doubt(poses, costs)
+            doubtful, confidence = self._doubt(poses, costs, src_t, nearest, inlier_distance)
             rounds = 2
         best = int(costs.argmin())
         pose = poses[best]

@@ -2,6 +2,7 @@
 
     python scripts/bench_register.py                 # 5 partial-vs-whole airplane pairs, 1024 vs 2048 points
     python scripts/bench_register.py --pairs 10 --commands 3 --json
+    python scripts/bench_register.py --previous '{"coarse_points": 256, "coarse_sides": ["both"]}'
 
 Pairs: :mod:`linereg.datasets.partial_vs_whole` on the ModelNet40 airplanes of the shared data (source a
 hidden-point-removal view of 1024 points, target 2048 points of the whole shape). In one run,
@@ -10,6 +11,8 @@ CPU-bound process spinning ("busy core"), it measures
 
 * the solver (``RobustRegistration``, the ``register`` default) per pair, after a warm-up pair;
 * Open3D point-to-point ICP on the same pairs (the reference of the ratios);
+* optionally (``--previous``) the solver with other :class:`~linereg.registration.solvers.RobustOptions`, e.g. a
+  former default, on the same pairs: a before/after ratio measured in the same run;
 * the wall time of ``python -m train.register source=... target=...`` (start-up included), and
   of ``python -c "import torch"`` (the floor any torch command pays).
 
@@ -36,7 +39,7 @@ import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
 import linereg.registration.baselines  # noqa: E402  (registers icp_point)
-import linereg.registration.solvers  # noqa: E402,F401  (registers robust)
+import linereg.registration.solvers  # noqa: E402  (registers robust)
 from linereg.datasets.partial_vs_whole import partial_vs_whole_pairs  # noqa: E402
 from linereg.io import write_point_cloud  # noqa: E402
 from linereg.metrics import rotation_error_deg  # noqa: E402
@@ -73,10 +76,14 @@ def _wall(command: list[str], cwd: Path, repeats: int) -> float:
     return statistics.median(times)
 
 
-def measure(pairs, folder: Path, commands: int) -> dict[str, float]:
-    """One row: solver, ICP and command times (medians) and their ratios."""
+def measure(pairs, folder: Path, commands: int, previous: dict | None = None) -> dict[str, float]:
+    """One row: solver, ICP and command times (medians) and their ratios; with ``previous``
+    (RobustOptions fields) also that solver's time and Err_R on the same pairs."""
     robust, robust_err = _solver_times(METHODS.build({"name": "robust"}), pairs)
     icp, icp_err = _solver_times(METHODS.build({"name": "icp_point"}), pairs)
+    before = None
+    if previous is not None:
+        before, before_err = _solver_times(METHODS.build({"name": "robust", "options": previous}), pairs)
     register = [sys.executable, "-m", "train.register", "source=src.ply", "target=tgt.ply", "progress=false"]
     command = _wall(register, folder, commands)
     floor = _wall([sys.executable, "-c", "import torch"], folder, commands)
@@ -90,6 +97,10 @@ def measure(pairs, folder: Path, commands: int) -> dict[str, float]:
         "import_torch_s": floor,
     }
     row["solver_vs_icp"] = row["solver_s"] / row["icp_s"]
+    if before is not None:
+        row["previous_s"] = statistics.median(before)
+        row["previous_err_r_deg_median"] = float(np.median(before_err))
+        row["previous_vs_icp"] = row["previous_s"] / row["icp_s"]
     row["command_vs_import_torch"] = command / floor
     return row
 
@@ -99,7 +110,12 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--pairs", type=int, default=5, help="timed pairs (one more is the warm-up)")
     parser.add_argument("--commands", type=int, default=3, help="runs of each command")
     parser.add_argument("--json", action="store_true")
+    parser.add_argument(
+        "--previous", type=json.loads, default=None, help="RobustOptions fields (JSON) of a solver to compare with"
+    )
     args = parser.parse_args(argv)
+    if args.previous is not None:
+        linereg.registration.solvers.RobustOptions(**args.previous)  # a bad field fails here, before any timing
     data = shared_data_dir()
     if data is None:
         parser.error("the shared data folder was not found (set $LINEREG_SHARED_DATA)")
@@ -111,11 +127,11 @@ def main(argv: list[str] | None = None) -> int:
         folder = Path(folder)
         write_point_cloud(folder / "src.ply", pairs[1].src_xyz)
         write_point_cloud(folder / "tgt.ply", pairs[1].tgt_xyz)
-        rows["quiet"] = measure(pairs, folder, args.commands)
+        rows["quiet"] = measure(pairs, folder, args.commands, args.previous)
         spinner = multiprocessing.Process(target=_spin, daemon=True)
         spinner.start()
         try:
-            rows["busy core"] = measure(pairs, folder, args.commands)
+            rows["busy core"] = measure(pairs, folder, args.commands, args.previous)
         finally:
             spinner.terminate()
             spinner.join()
@@ -136,6 +152,15 @@ def main(argv: list[str] | None = None) -> int:
             f"| {row['icp_s']:.3f} | {row['solver_vs_icp']:.0f}x | {row['command_s']:.2f} "
             f"| {row['import_torch_s']:.2f} | {row['command_vs_import_torch']:.2f}x |"
         )
+    if args.previous is not None:
+        print(f"\nprevious solver ({json.dumps(args.previous)}):\n")
+        print("| machine | previous median (s) | median Err_R (deg) | previous / ICP | solver / previous |")
+        print("|---|---|---|---|---|")
+        for name, row in rows.items():
+            print(
+                f"| {name} | {row['previous_s']:.2f} | {row['previous_err_r_deg_median']:.3f} "
+                f"| {row['previous_vs_icp']:.0f}x | {row['solver_s'] / row['previous_s']:.2f}x |"
+            )
     busy = rows["busy core"]
     print(
         f"\nbusy core / quiet: solver {busy['solver_s_busy_vs_quiet']:.2f}x, "

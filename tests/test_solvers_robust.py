@@ -59,6 +59,17 @@ def test_batched_chamfer_welsch_matches_the_loss_value_and_gradient():
     torch.testing.assert_close(grad_ours, grad_reference)
 
 
+def test_one_sided_entries_keep_only_the_source_to_target_term():
+    rng = np.random.default_rng(4)
+    x = torch.from_numpy(rng.normal(size=(2, 50, 3)))
+    y = torch.from_numpy(rng.normal(size=(2, 80, 3)) * 1.5)
+    ours = chamfer_welsch_batched(x, y, 2.0, two_sided=torch.tensor([True, False]))
+    torch.testing.assert_close(ours[0], chamfer_welsch_distance(x[:1], y[:1], nu0=2.0)[0])
+    distances = torch.cdist(x[1], y[1]).min(dim=1).values  # naive twin: brute force, one direction
+    nu = 2.0 * distances.median()
+    torch.testing.assert_close(ours[1], (1 - torch.exp(-distances.square() / (2 * nu * nu))).mean())
+
+
 def test_nearest_target_matches_brute_force():
     rng = np.random.default_rng(1)
     tgt = torch.from_numpy(rng.normal(size=(200, 3)))
@@ -128,6 +139,13 @@ def test_options_are_checked():
         RobustOptions(coarse_points=0)
     with pytest.raises(ValueError, match="doubt_ratio must be >= 1"):
         RobustOptions(doubt_ratio=0.5)
+    with pytest.raises(ValueError, match="min_fitness must be in"):
+        RobustOptions(min_fitness=1.5)
+    with pytest.raises(ValueError, match="coarse_sides must be"):
+        RobustOptions(coarse_sides=("both", "target"))
+    with pytest.raises(ValueError, match="coarse_sides must be"):
+        RobustOptions(coarse_sides=())
+    assert RobustOptions(coarse_sides=["source"]).coarse_sides == ("source",)
     with pytest.raises(TypeError, match="unknown option"):
         METHODS.build({"name": "robust", "options": {"startz": 3}})
 
@@ -147,15 +165,31 @@ def test_robust_registration_recovers_a_partial_view_and_reports_its_quality(par
     info = result.info
     assert info["fitness"] > 0.95 and 0 < info["inlier_rmse"] < info["fitness_threshold"]
     assert info["converged"] is True and info["confidence"] > 0.2 and info["rounds"] == 1
-    assert info["starts"] == 4 and info["warnings"] == []
+    assert info["starts"] == 4 * 2 and info["warnings"] == []  # 4 starts, each with both coarse losses
 
 
 def test_a_doubtful_pose_gets_a_second_round_from_more_starts(partial_pair):
     src, tgt, truth = partial_pair
     result = METHODS.build({"name": "robust", "num_points": 512, "options": {"max_cost": 1e-6}})(src, tgt)
-    assert result.info["rounds"] == 2 and result.info["starts"] == 4 + 24
+    assert result.info["rounds"] == 2 and result.info["starts"] == 2 * (4 + 24)
     assert result.info["converged"] is False
     assert rotation_error_deg(result.transform, truth) < 1.0
+
+
+def test_a_near_symmetric_pose_that_the_first_round_misses_is_found_by_the_second():
+    """The bumpy ellipsoid is nearly symmetric under half-turns: from the 4 first-round starts
+    the best candidate is the flipped pose, and only the doubt (a rival basin that costs
+    about as much) sends the solver on to the 24 cube rotations that reach the truth."""
+    whole = surface(3000, 7)
+    src = whole[whole[:, 0] > -0.3][:700]
+    truth = pose([120, -100, 45], [0.2, -0.1, 0.15])
+    tgt = apply(truth, whole)
+    never_doubt = {"doubt_ratio": 1.0, "min_fitness": 0.0, "max_cost": 1.0}
+    first_round = METHODS.build({"name": "robust", "num_points": 512, "options": never_doubt})(src, tgt)
+    assert first_round.info["rounds"] == 1 and rotation_error_deg(first_round.transform, truth) > 90
+    result = METHODS.build({"name": "robust", "num_points": 512})(src, tgt)
+    assert result.info["rounds"] == 2 and rotation_error_deg(result.transform, truth) < 1.0
+    assert result.info["converged"] is False  # the flipped basin still scores within doubt_ratio
 
 
 def test_init_is_applied_to_the_source_first(partial_pair):

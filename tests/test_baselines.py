@@ -1,4 +1,4 @@
-"""Classical baselines (train/baselines.py): recovery, identity, centring, input errors."""
+"""Classical baselines (registration/baselines.py): recovery, identity, centring, input errors."""
 
 from __future__ import annotations
 

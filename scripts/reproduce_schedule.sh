@@ -17,8 +17,8 @@ SEEDS=${SEEDS:-0}
 CELLS=${CELLS:-rpm_untrained rpm_reg rpm_gt rpm_cd rpm_ours rpm_ours_quick}
 export OMP_NUM_THREADS=${OMP_NUM_THREADS:-1}
 
-COMMON=(trainer.num_points=256 trainer.threads=1 trainer.progress=false trainer.evaluate_checkpoint=last
-  optimizer.lr=1e-3 scheduler=cosine)
+COMMON=(trainer.num_points=256 trainer.threads=1 trainer.progress=false trainer.log_term_grad_norms=false
+  trainer.evaluate_checkpoint=last optimizer.lr=1e-3 scheduler=cosine)
 # One stage: the easy variant (poses <= 15 deg, more overlap) of all 384 training pairs, 4 epochs.
 EASY_ALL=(curriculum.stages.easy.subset=null curriculum.stages.subset.epochs=0 curriculum.stages.full.epochs=0)
 UNSUPERVISED=(loss.terms.outlier.weight=1)

@@ -4,7 +4,7 @@
 # outlier weight 1 for the unsupervised cells, the last checkpoint evaluated: no label chooses
 # it), plus the untrained network and the regulariser alone; then the table of test errors.
 #
-#   scripts/reproduce_schedule.sh                      # seed 0, every cell (about 5 h of one core)
+#   scripts/reproduce_schedule.sh                      # seed 0, every cell (about 40 min of CPU, one core)
 #   SEEDS="0 1 2" CELLS="rpm_ours rpm_cd" scripts/reproduce_schedule.sh
 #
 # Finished cells (metrics.json present) are skipped. Runs land in $OUT/procedural (default

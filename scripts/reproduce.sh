@@ -58,7 +58,9 @@ for seed in $SEEDS; do
           for loss in ours cd gt; do
             cell "$part" "${backbone}_$loss" "${backbone}_$loss" "$seed"
           done
-          # Control: the unsupervised regulariser alone (the line term is logged, weight 0).
+          # Controls: the untrained network (its initial weights evaluated like a trained run)
+          # and the unsupervised regulariser alone (the line term is logged, weight 0).
+          cell "$part" "${backbone}_untrained" "${backbone}_ours" "$seed" trainer.untrained=true
           cell "$part" "${backbone}_reg" "${backbone}_ours" "$seed" loss.terms.alignment.weight=0
         done
         baselines "$part" "$OUT/$part/rpm_ours_s$seed"

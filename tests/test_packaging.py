@@ -134,3 +134,13 @@ def test_every_third_party_import_is_declared():
                     if not provided & allowed and not ("open3d" in provided and "open3d-cpu" in allowed):
                         missing.append(f"{path.relative_to(ROOT)}: {name} ({', '.join(sorted(provided))})")
     assert not missing, "undeclared dependencies:\n" + "\n".join(missing)
+
+
+def test_every_config_folder_is_packaged():
+    tomllib = pytest.importorskip("tomllib")
+    packages = set(tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["setuptools"]["packages"])
+    folders = {
+        ".".join(("linereg", *path.relative_to(ROOT).parent.parts))
+        for path in (ROOT / "configs").rglob("*.yaml")
+    }
+    assert folders - packages == set(), "config folders missing from [tool.setuptools] packages in pyproject.toml"

@@ -15,7 +15,8 @@ Err_R and Err_t (l1, x10^-1 as docs/results.md) of:
    aligns the two clouds' centroids. On a partial view against a whole shape the centroids
    differ by where the view lies on the shape, so centroid alignment has a fixed translation
    error; ``error along centroid offset`` is the share of the network's translation error along
-   that offset. Also the assignment's row mass near the true match against a uniform assignment's.
+   that offset. Also the assignment's row mass near the true match against a uniform assignment's,
+   and RPM-Net's outlier penalty of the network's, a uniform and a correct assignment.
 3. **Remedies on the same checkpoint**: nearest-neighbour translation refinement
    (:func:`linereg.models.blocks.refine_translation`, the network's rotation kept), and Open3D's
    point-to-point ICP from the identity on the same pairs. The time column is the median over
@@ -38,6 +39,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 from linereg.checkpoint import find_checkpoint, load_checkpoint
 from linereg.datasets import collate_pairs
 from linereg.datasets.benchmark_pairs import run_pairs
+from linereg.losses.supervised import outlier_penalty
 from linereg.metrics import registration_errors
 from linereg.models import MODELS
 from linereg.models.blocks import refine_translation, soft_correspondence_transform
@@ -116,6 +118,11 @@ def network_rows(model: torch.nn.Module, batch: PairBatch, gt: torch.Tensor, ref
     near_mass = float(((assignment * near).sum(-1) / mass.clamp_min(1e-12)).mean())
     uniform_near = float(near.double().mean())
     betas = ", ".join(f"{float(beta.mean()):.2f}" for beta in output.extras["beta"])
+    # An assignment that puts mass only on target points near a moved source point, at most 1 per
+    # target point (as Sinkhorn's columns), has at most this total mass per pair:
+    matchable = near.any(dim=1).sum(-1).double()
+    correct_penalty = (1 - matchable / tgt.shape[1]) + (1 - matchable / src.shape[1])
+    uniform = torch.full_like(assignment, 1.0 / tgt.shape[1])
     rows = [
         _row("network", T, gt, src, f"{forward_seconds:.3f} s/batch (1x)"),
         _row("network rotation + centroid alignment", _centroid_alignment(rotation, src, tgt), gt, src),
@@ -126,6 +133,11 @@ def network_rows(model: torch.nn.Module, batch: PairBatch, gt: torch.Tensor, ref
         f"{float(centroid_offset.norm(dim=-1).mean()):.4f}",
         f"- assignment row mass within {NEAR_RADIUS:g} of the true match: {near_mass:.3f} "
         f"(a uniform assignment: {uniform_near:.3f}); beta per iteration: {betas}",
+        f"- RPM-Net's outlier penalty (the unsupervised cells' regulariser, before its weight): network "
+        f"{float(outlier_penalty(assignment)):.3f}, uniform assignment {float(outlier_penalty(uniform)):.3f}, "
+        f"at least {float(correct_penalty.mean()):.3f} for any assignment with mass only within {NEAR_RADIUS:g} "
+        f"of the true match and at most 1 per target point ({float(matchable.mean()):.0f} of "
+        f"{tgt.shape[1]} target points lie that close to the moved source)",
     ]
     for iterations in refine:
         refined = refine_translation(src, tgt, T, mass, iterations)

@@ -272,9 +272,9 @@ def refine_translation(
         raise ValueError(f"weights must have shape {tuple(src.shape[:2])}, got {tuple(weights.shape)}")
     if not bool(torch.isfinite(weights).all()) or bool((weights < 0).any()):
         raise ValueError("weights must be finite and non-negative")
-    weights = torch.where(weights.sum(-1, keepdim=True) > 0, weights, torch.ones_like(weights))
-    probabilities = weights / weights.sum(-1, keepdim=True)
     with torch.no_grad():
+        weights = torch.where(weights.sum(-1, keepdim=True) > 0, weights, torch.ones_like(weights))
+        probabilities = weights / weights.sum(-1, keepdim=True)
         moved = transform_points(transform, src)
         shift = torch.zeros_like(moved[:, 0])
         for _ in range(iterations):

@@ -8,6 +8,7 @@
 * :func:`soft_correspondence_transform`: the rigid head of DCP and RPM-Net (a soft assignment
   turned into virtual target points, then :func:`linereg.procrustes.weighted_procrustes`),
   reporting failing samples by batch index.
+* :func:`refine_translation`: nearest-neighbour translation steps after a model's estimate.
 """
 
 from __future__ import annotations
@@ -20,7 +21,9 @@ import torch
 from torch import nn
 
 from linereg.checks import check_points, check_same_batch
+from linereg.pointcloud import knn
 from linereg.procrustes import weighted_procrustes
+from linereg.se3 import transform_points
 from linereg.structures import PairBatch
 
 NormKind = Literal["group", "batch", "none"]
@@ -228,3 +231,57 @@ def soft_correspondence_transform(
             stacklevel=3,
         )
     return result.transform
+
+
+def refine_translation(
+    src: torch.Tensor,
+    tgt: torch.Tensor,
+    transform: torch.Tensor,
+    weights: torch.Tensor,
+    iterations: int,
+) -> torch.Tensor:
+    """Refine the translation of ``transform`` by nearest-neighbour steps, keeping its rotation.
+
+    Each step moves the transformed source by the ``weights``-weighted mean offset from every
+    source point to its nearest target point (the translation-only step of point-to-point ICP).
+    RPM-Net's soft assignment, when nearly uniform, turns weighted Procrustes into centroid
+    alignment, whose translation is off by the distance between the centroids of a partial view
+    and of the whole shape; these steps bring the translation back onto the surface
+    (``scripts/check_translation.py``). The nearest neighbours are not differentiable: the shift
+    is a constant for autograd (gradients reach ``transform`` as if it were not refined).
+
+    Args:
+        src: tensor of shape ``(B, J, 3)`` giving the source points.
+        tgt: tensor of shape ``(B, K, 3)`` giving the target points.
+        transform: tensor of shape ``(B, 4, 4)`` giving the estimate ``T_tgt_src`` to refine.
+        weights: tensor of shape ``(B, J)`` giving non-negative per-source-point weights (RPM-Net:
+            the assignment's row mass); rows summing to zero count every point equally.
+        iterations: number of steps (0 returns ``transform`` unchanged).
+
+    Returns:
+        Tensor of shape ``(B, 4, 4)``: ``transform`` with its translation refined.
+    """
+    if iterations < 0:
+        raise ValueError(f"iterations must be >= 0, got {iterations}")
+    check_points(src, "src", batched=True)
+    check_points(tgt, "tgt", batched=True)
+    check_same_batch(src, tgt, "src", "tgt")
+    if transform.shape != (src.shape[0], 4, 4):
+        raise ValueError(f"transform must have shape ({src.shape[0]}, 4, 4), got {tuple(transform.shape)}")
+    if weights.shape != src.shape[:2]:
+        raise ValueError(f"weights must have shape {tuple(src.shape[:2])}, got {tuple(weights.shape)}")
+    if not bool(torch.isfinite(weights).all()) or bool((weights < 0).any()):
+        raise ValueError("weights must be finite and non-negative")
+    with torch.no_grad():
+        weights = torch.where(weights.sum(-1, keepdim=True) > 0, weights, torch.ones_like(weights))
+        probabilities = weights / weights.sum(-1, keepdim=True)
+        moved = transform_points(transform, src)
+        shift = torch.zeros_like(moved[:, 0])
+        for _ in range(iterations):
+            shifted = moved + shift[:, None]
+            nearest = knn(shifted, tgt, 1).idx[..., 0]
+            matched = torch.gather(tgt, 1, nearest[..., None].expand(-1, -1, 3))
+            shift = shift + (probabilities[..., None] * (matched - shifted)).sum(1)
+    offset = torch.zeros_like(transform)
+    offset[:, :3, 3] = shift.to(transform.dtype)
+    return transform + offset

@@ -51,6 +51,7 @@ from .blocks import (
     NormKind,
     check_pair_batch,
     make_norm,
+    refine_translation,
     resolve_groups,
     shared_mlp,
     soft_correspondence_transform,
@@ -374,6 +375,12 @@ class RPMNet(nn.Module):
         chunk_bytes: memory bound of the chunked feature network (see the module docstring).
         checkpoint: recompute the feature network's per-neighbour activations in the backward
             pass (saves most of the training memory for about a third more compute).
+        translation_refinement: outside training, nearest-neighbour translation steps applied to
+            the last estimate (:func:`linereg.models.blocks.refine_translation`, weighted by the
+            assignment's row mass; the rotation is kept). 0 (the original) disables them. A
+            nearly uniform assignment makes the translation that of centroid alignment, off by
+            the offset between a partial view's centroid and the whole shape's
+            (``scripts/check_translation.py``).
 
     ``forward(batch)`` needs ``batch.src_normals`` and ``batch.tgt_normals`` and returns a
     :class:`RegistrationOutput` with one ``(B, 4, 4)`` source -> target estimate per iteration
@@ -397,10 +404,13 @@ class RPMNet(nn.Module):
         groups: int | None = None,
         chunk_bytes: int = 4 * 2**20,
         checkpoint: bool = False,
+        translation_refinement: int = 0,
     ) -> None:
         super().__init__()
         if train_iters < 1 or test_iters < 1:
             raise ValueError(f"train_iters and test_iters must be >= 1, got {train_iters} and {test_iters}")
+        if translation_refinement < 0:
+            raise ValueError(f"translation_refinement must be >= 0, got {translation_refinement}")
         self.features = PPFFeatures(
             feature_dim,
             radius,
@@ -415,6 +425,7 @@ class RPMNet(nn.Module):
         self.test_iters = test_iters
         self.sinkhorn_iters = sinkhorn_iters
         self.slack = slack
+        self.translation_refinement = translation_refinement
 
     def forward(self, batch: PairBatch) -> RegistrationOutput:
         check_pair_batch(batch, "RPM-Net", needs_normals=True, dtype=next(self.parameters()).dtype)
@@ -437,6 +448,9 @@ class RPMNet(nn.Module):
             perm_matrices.append(perm)
             betas.append(beta)
             alphas.append(alpha)
+        if self.translation_refinement and not self.training:
+            mass = perm_matrices[-1].sum(-1)
+            transforms[-1] = refine_translation(src, tgt, transforms[-1], mass, self.translation_refinement)
         return RegistrationOutput(
             transforms=transforms,
             extras={"perm_matrices": perm_matrices, "beta": betas, "alpha": alphas},

@@ -107,6 +107,12 @@ def welsch_cost(distances: np.ndarray, nu: np.ndarray | float) -> np.ndarray:
     return (1.0 - _welsch_weights(distances, nu)).mean(axis=-1)
 
 
+def lower_median(values: np.ndarray) -> np.ndarray:
+    """Median over the last axis, the lower middle value for an even count (``torch.median``'s, as CD-W's scale)."""
+    middle = (values.shape[-1] - 1) // 2
+    return np.partition(values, middle, axis=-1)[..., middle]
+
+
 def cdw(
     poses: Poses,
     src: np.ndarray,
@@ -129,7 +135,7 @@ def cdw(
     d_xy, j = tgt_tree.query(apply(poses, src), workers=1)
     back = (tgt[None] - translations[:, None, :]) @ rotations
     d_yx, i = src_tree.query(back, workers=1)
-    median = np.where(two_sided, np.median(np.concatenate([d_xy, d_yx], axis=1), axis=1), np.median(d_xy, axis=1))
+    median = np.where(two_sided, lower_median(np.concatenate([d_xy, d_yx], axis=1)), lower_median(d_xy))
     return d_xy, j, d_yx, i, median
 
 
@@ -296,16 +302,30 @@ def cdw_adam(
     return (rotations, translations), merged
 
 
-def welsch_irls(poses: Poses, src: np.ndarray, tgt_tree: cKDTree, nus: np.ndarray) -> Poses:
+def welsch_irls(
+    poses: Poses, src: np.ndarray, tgt_tree: cKDTree, nus: np.ndarray, settle: int = 0, tolerance: float = 1e-6
+) -> Poses:
     """Robust point-to-point ICP: one Welsch-weighted Procrustes step per scale in ``nus``,
-    matching every source point ``(N, 3)`` to its nearest target point; ``K`` poses at once."""
+    matching every source point ``(N, 3)`` to its nearest target point; ``K`` poses at once.
+    Then up to ``settle`` more steps at the last scale, each pose until it moves less than
+    ``tolerance`` (ICP crawls along directions in which the surfaces slide on each other)."""
     tgt = np.concatenate([tgt_tree.data, np.zeros((1, 3))])  # scipy's index of "none in range": weight 0
-    for nu in nus:
-        distances, idx = tgt_tree.query(apply(poses, src), distance_upper_bound=_REACH * nu, workers=1)
+    rotations, translations = (array.copy() for array in poses)
+    active = np.ones(len(rotations), dtype=bool)
+    schedule = list(nus) + [nus[-1]] * settle if len(nus) else []
+    for step, nu in enumerate(schedule):
+        current = (rotations[active], translations[active])
+        distances, idx = tgt_tree.query(apply(current, src), distance_upper_bound=_REACH * nu, workers=1)
         weights = _welsch_weights(distances, nu)
-        new, valid = weighted_procrustes(np.broadcast_to(src, (len(idx), *src.shape)), tgt[idx], weights)
-        poses = tuple(np.where(valid.reshape(-1, *[1] * (a.ndim - 1)), a, b) for a, b in zip(new, poses, strict=True))
-    return poses
+        (new_r, new_t), valid = weighted_procrustes(np.broadcast_to(src, (len(idx), *src.shape)), tgt[idx], weights)
+        new_r[~valid], new_t[~valid] = current[0][~valid], current[1][~valid]
+        rotations[active], translations[active] = new_r, new_t
+        if step >= len(nus) - 1:
+            moved = np.abs(new_r - current[0]).max(axis=(1, 2)) + np.abs(new_t - current[1]).max(axis=1)
+            active[np.flatnonzero(active)[moved < tolerance]] = False
+            if not active.any():
+                break
+    return rotations, translations
 
 
 def fixed_scale_cost(poses: Poses, src: np.ndarray, tgt_tree: cKDTree, nu: float) -> np.ndarray:
@@ -409,6 +429,7 @@ class RobustOptions:
         polish_steps: Welsch IRLS steps from every coarse result with :func:`polish_scales`.
         polish_nu: first IRLS scale.
         polish_end: last IRLS scale, times the target's median point spacing.
+        polish_settle: most further IRLS steps at the last scale, each candidate until it stops moving.
         select_nu: scale of the selection cost :func:`fixed_scale_cost`.
         doubt_ratio: the pose is doubtful when another candidate more than ``distinct_deg``
             away costs less than this factor times the best cost, or the best cost exceeds
@@ -436,6 +457,7 @@ class RobustOptions:
     polish_steps: int = 20
     polish_nu: float = 0.05
     polish_end: float = 0.3
+    polish_settle: int = 60
     select_nu: float = 0.03
     doubt_ratio: float = 1.25
     distinct_deg: float = 10.0
@@ -460,7 +482,7 @@ class RobustOptions:
         for name in positive:
             if not getattr(self, name) > 0:
                 raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
-        for name in ("coarse_steps", "explore_steps", "polish_steps", "merge_distance"):
+        for name in ("coarse_steps", "explore_steps", "polish_steps", "polish_settle", "merge_distance"):
             if getattr(self, name) < 0:
                 raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
         if not 0 <= self.min_fitness <= 1:
@@ -594,7 +616,7 @@ class RobustRegistration:
                 options.explore_lr,
                 merge_distance=options.merge_distance,
             )
-        poses = welsch_irls((poses[0][~merged], poses[1][~merged]), src, tgt_tree, nus)
+        poses = welsch_irls((poses[0][~merged], poses[1][~merged]), src, tgt_tree, nus, options.polish_settle)
         return poses, fixed_scale_cost(poses, src, tgt_tree, options.select_nu), len(sides)
 
     def _doubt(self, poses: Poses, costs: np.ndarray, src, tgt_tree, inlier_distance) -> tuple[bool, float]:

@@ -1,25 +1,26 @@
-"""The ``register`` default in numpy and scipy: multi-start Welsch IRLS, fixed-scale selection.
+"""The ``register`` default in numpy and scipy: multi-start CD-W, Welsch IRLS, fixed-scale selection.
 
 No torch on this path (nor Open3D, numba or matplotlib): ``linereg.register`` and the
 ``linereg-register`` command start in about the time numpy and scipy take to import.
 
-Every stage is a majorise-minimise (MM) step of a Welsch objective: match points to their
-nearest neighbours, weight each match by ``exp(-d^2 / 2 nu^2)`` and solve the weighted
-Procrustes problem in closed form. Each step cannot increase the objective at a fixed ``nu``
-(the Welsch function is concave in ``d^2``, and new nearest neighbours only shorten the
+The first round and the polish are majorise-minimise (MM) steps of a Welsch objective: match
+points to their nearest neighbours, weight each match by ``exp(-d^2 / 2 nu^2)`` and solve the
+weighted Procrustes problem in closed form. A step cannot increase the objective at a fixed
+``nu`` (the Welsch function is concave in ``d^2``, and new nearest neighbours only shorten the
 distances), so a few dozen steps replace hundreds of gradient steps.
 
 1. Both clouds centred (:func:`~linereg.registration.methods.run_centered`) and scaled together
    into the unit ball; FPS subsets of ``num_points`` for the polish and the selection.
-2. Coarse: IRLS on CD-W (``nu = nu0 * median`` of the nearest distances, recomputed every step,
-   so it shrinks as the fit improves) from every start, on small FPS subsets, once with both
+2. Round 1, coarse: IRLS on CD-W (:func:`cdw_irls`; ``nu = nu0 * median`` of the nearest
+   distances, recomputed every step) from every start on small FPS subsets, once with both
    directions and once with the source-to-target term alone (a partial view inside a whole
-   target, see :func:`cdw_irls`). All candidates of a round form one batch.
+   target). All candidates of a round form one batch; merged ones are dropped.
 3. Polish: Welsch IRLS of the source-to-target distances with falling fixed scales
-   (:func:`polish_scales`), on the FPS subsets.
-4. Select the candidate with the lowest :func:`fixed_scale_cost`; when the choice is doubtful
-   (a distinct rival nearly as good, a high cost, a low fitness), run a second round from the
-   24 cube rotations with a longer coarse stage and select among all candidates.
+   (:func:`welsch_irls`, :func:`polish_scales`).
+4. Select the candidate with the lowest :func:`fixed_scale_cost`. When the choice is doubtful
+   (a distinct rival nearly as good, a high cost, a low fitness), round 2 runs Adam on CD-W
+   (:func:`cdw_adam`) from the same starts, then round 3 from the 24 cube rotations, each
+   followed by the polish, and the selection runs over every candidate so far.
 """
 
 from __future__ import annotations
@@ -526,13 +527,14 @@ def polish_scales(options: Any, spacing: float) -> np.ndarray:
 
 class RobustRegistration:
     """The ``register`` default (numpy/scipy): multi-start IRLS on CD-W, Welsch IRLS polish,
-    fixed-scale selection, a second round when doubtful (module docstring).
+    fixed-scale selection, Adam rounds when doubtful (module docstring).
 
     The result's ``info`` holds ``fitness`` and ``inlier_rmse`` (Open3D's definitions, within
     ``fitness_threshold`` in input units; default 3 times the target's median point spacing),
     ``converged`` (the final choice is not doubtful), ``confidence`` (``1 - best cost / cost of
-    the best distinct basin``; 1 without a rival), ``rounds``, ``starts`` (candidates: starts x
-    coarse sides), the selection ``cost``, and ``warnings`` (collinear clouds).
+    the best distinct basin``; 1 without a rival), ``rounds``, ``starts`` (coarse candidates of
+    all rounds: starts x coarse sides), ``candidates`` (those polished: not merged), the
+    selection ``cost``, and ``warnings`` (collinear clouds).
 
     Args:
         options: :class:`RobustOptions` or a mapping of its fields.

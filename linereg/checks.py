@@ -6,10 +6,22 @@ every message names the argument and gives the expected and the actual value.
 
 from __future__ import annotations
 
-import numpy as np
-import torch
+import sys
+from typing import TYPE_CHECKING, Any
 
-ArrayLike = torch.Tensor | np.ndarray
+import numpy as np
+
+if TYPE_CHECKING:
+    import torch
+
+ArrayLike = "torch.Tensor | np.ndarray"
+
+
+def is_tensor(value: Any) -> bool:
+    """Whether ``value`` is a ``torch.Tensor``, without importing torch (numpy-only callers
+    such as the ``register`` default stay free of it: a tensor exists only once torch is loaded)."""
+    torch_module = sys.modules.get("torch")
+    return torch_module is not None and isinstance(value, torch_module.Tensor)
 
 
 def check_points(
@@ -34,11 +46,10 @@ def check_points(
         TypeError: not a tensor/array, or not a floating-point dtype.
         ValueError: wrong shape, fewer than ``min_points`` points, or NaN/Inf coordinates.
     """
-    if not isinstance(points, torch.Tensor | np.ndarray):
+    tensor = is_tensor(points)
+    if not (tensor or isinstance(points, np.ndarray)):
         raise TypeError(f"{name} must be a torch.Tensor or numpy array, got {type(points).__name__}")
-    is_float = (
-        points.is_floating_point() if isinstance(points, torch.Tensor) else np.issubdtype(points.dtype, np.floating)
-    )
+    is_float = points.is_floating_point() if tensor else np.issubdtype(points.dtype, np.floating)
     if not is_float:
         raise TypeError(f"{name} must have a floating-point dtype, got {points.dtype}")
     allowed = {True: (3,), False: (2,), None: (2, 3)}[batched]
@@ -48,7 +59,7 @@ def check_points(
         raise ValueError(f"{name} must have shape {expected}, got {shape}")
     if shape[-2] < min_points:
         raise ValueError(f"{name} must hold at least {min_points} point(s), got {shape[-2]}")
-    finite = torch.isfinite(points).all() if isinstance(points, torch.Tensor) else np.isfinite(points).all()
+    finite = points.isfinite().all() if tensor else np.isfinite(points).all()
     if not bool(finite):
         raise ValueError(f"{name} contains NaN or Inf coordinates")
 
@@ -60,7 +71,7 @@ def check_shape(value: torch.Tensor, name: str, trailing: tuple[int, ...]) -> No
         TypeError: not a tensor, or not a floating-point dtype.
         ValueError: the trailing dimensions differ from ``trailing``.
     """
-    if not isinstance(value, torch.Tensor):
+    if not is_tensor(value):
         raise TypeError(f"{name} must be a torch.Tensor, got {type(value).__name__}")
     if not value.is_floating_point():
         raise TypeError(f"{name} must have a floating-point dtype, got {value.dtype}")
@@ -82,22 +93,15 @@ def check_transform(transform: ArrayLike, name: str = "transform", *, rigid_atol
         TypeError: not a tensor/array, or not a floating-point dtype.
         ValueError: wrong shape, non-finite entries, or (with ``rigid_atol``) not rigid.
     """
-    if not isinstance(transform, torch.Tensor | np.ndarray):
+    tensor = is_tensor(transform)
+    if not (tensor or isinstance(transform, np.ndarray)):
         raise TypeError(f"{name} must be a torch.Tensor or numpy array, got {type(transform).__name__}")
-    is_float = (
-        transform.is_floating_point()
-        if isinstance(transform, torch.Tensor)
-        else np.issubdtype(transform.dtype, np.floating)
-    )
+    is_float = transform.is_floating_point() if tensor else np.issubdtype(transform.dtype, np.floating)
     if not is_float:
         raise TypeError(f"{name} must have a floating-point dtype, got {transform.dtype}")
     if transform.ndim < 2 or tuple(transform.shape[-2:]) != (4, 4):
         raise ValueError(f"{name} must have shape (..., 4, 4), got {tuple(transform.shape)}")
-    matrix = (
-        transform.detach().cpu().double().numpy()
-        if isinstance(transform, torch.Tensor)
-        else np.asarray(transform, dtype=np.float64)
-    )
+    matrix = transform.detach().cpu().double().numpy() if tensor else np.asarray(transform, dtype=np.float64)
     if not np.isfinite(matrix).all():
         raise ValueError(f"{name} contains NaN or Inf entries")
     if rigid_atol is None:
@@ -140,6 +144,8 @@ def check_lengths(
     """
     if lengths is None:
         return None
+    import torch
+
     if not isinstance(lengths, torch.Tensor | np.ndarray):
         raise TypeError(f"{name} must be a torch.Tensor or numpy array of integers, got {type(lengths).__name__}")
     is_integer = (

@@ -1,15 +1,19 @@
 """Registration of one pair of clouds: the method registry, the solvers, the baselines and :func:`register`.
 
 Every method is a callable ``method(src, tgt, src_normals=None, tgt_normals=None)`` on numpy
-clouds returning a :class:`MethodResult` (see :mod:`linereg.registration.methods`). Importing this
-package registers them all in :data:`METHODS`: the solvers ``robust`` (the default of
-:func:`register`), ``adam_loss`` and ``svd_irls`` (:mod:`linereg.registration.solvers`), and the
-classical baselines ``icp_point``, ``icp_plane``, ``fgr`` and ``fricp``
-(:mod:`linereg.registration.baselines`). :func:`register` (also ``linereg.register``) runs any of
-them, or a trained network, on arrays, tensors, Open3D clouds or files.
+clouds returning a :class:`MethodResult` (see :mod:`linereg.registration.methods`). The default of
+:func:`register` (also ``linereg.register``), ``robust`` (:mod:`linereg.registration.robust`), is
+numpy and scipy only; the torch solvers ``robust_adam``, ``adam_loss`` and ``svd_irls``
+(:mod:`linereg.registration.solvers`) and the classical baselines ``icp_point``, ``icp_plane``,
+``fgr`` and ``fricp`` (:mod:`linereg.registration.baselines`) register in :data:`METHODS` when
+first needed (a name not yet registered, or a listing), so that importing this package does not
+import torch. :func:`register` runs any of them, or a trained network, on arrays, tensors,
+Open3D clouds or files.
 """
 
-from linereg.registration import baselines, solvers
+from typing import Any
+
+from linereg.registration import robust
 from linereg.registration.api import LearnedRegistration, RegistrationResult, register
 from linereg.registration.methods import METHODS, Method, MethodResult, run_centered
 
@@ -21,6 +25,16 @@ __all__ = [
     "RegistrationResult",
     "baselines",
     "register",
+    "robust",
     "run_centered",
     "solvers",
 ]
+
+
+def __getattr__(name: str) -> Any:
+    """The torch-based members, imported on first use."""
+    import importlib
+
+    if name in ("solvers", "baselines"):
+        return importlib.import_module(f"linereg.registration.{name}")
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -23,18 +23,16 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import torch
 
-from linereg.checks import check_points, check_transform
+from linereg.checks import check_points, check_transform, is_tensor
 from linereg.io import PointCloud, read_point_cloud
-from linereg.models import load_model
-from linereg.pointcloud import estimate_normals
 from linereg.registration.methods import METHODS, MethodResult, run_centered
-from linereg.registration.solvers import _normalise, _subsample, _unscale, alignment_quality, point_spacing
+from linereg.registration.robust import alignment_quality, fps, point_spacing
 from linereg.registry import UnknownNameError
-from linereg.structures import PairBatch
 
 DEFAULT_METHOD = "robust"
+GPU_METHOD = "robust_adam"
+"""The default's torch twin (Adam coarse stage), used by ``method="default"`` with a ``device`` other than the CPU."""
 _MIN_POINTS = 3
 
 
@@ -87,7 +85,7 @@ def as_cloud(value: Any, name: str) -> tuple[np.ndarray, np.ndarray | None]:
             raise TypeError(f"{name}: an Open3D {type(value).__name__} is not a point cloud")
         points = np.asarray(value.points)
         normals = np.asarray(value.normals) if value.has_normals() else None
-    elif isinstance(value, torch.Tensor):
+    elif is_tensor(value):
         points = value.detach().cpu().numpy()
     elif isinstance(value, np.ndarray):
         points = value
@@ -103,7 +101,7 @@ def as_cloud(value: Any, name: str) -> tuple[np.ndarray, np.ndarray | None]:
 def _checked_init(init: Any) -> np.ndarray | None:
     if init is None:
         return None
-    transform = init.detach().cpu().numpy() if isinstance(init, torch.Tensor) else np.asarray(init)
+    transform = init.detach().cpu().numpy() if is_tensor(init) else np.asarray(init)
     if transform.shape != (4, 4):
         raise ValueError(f"init must be a (4, 4) rigid transform, got shape {transform.shape}")
     check_transform(transform, "init", rigid_atol=1e-4)
@@ -123,17 +121,21 @@ class LearnedRegistration:
         num_points: points per cloud fed to the model (``None``: the run's ``trainer.num_points``).
         refine: also run the default solver from the model's estimate (a single start:
             coarse CD-W, Welsch IRLS, the selection, escalating only when doubtful); a mapping
-            gives :class:`~linereg.registration.solvers.RobustOptions` fields.
+            gives :class:`~linereg.registration.robust.RobustOptions` fields.
     """
 
     def __init__(
         self,
         checkpoint: str | Path,
         *,
-        device: str | torch.device = "cpu",
+        device: str | Any = "cpu",
         num_points: int | None = None,
         refine: bool | Mapping[str, Any] = False,
     ) -> None:
+        import torch
+
+        from linereg.models import load_model
+
         self.model, state = load_model(checkpoint, device)
         self.device = torch.device(device)
         self.checkpoint = state["path"]
@@ -141,21 +143,29 @@ class LearnedRegistration:
         self.refiner = None
         if refine:
             options = {"starts": 1, **(dict(refine) if isinstance(refine, Mapping) else {})}
-            self.refiner = METHODS.build({"name": DEFAULT_METHOD, "options": options, "device": str(self.device)})
+            name = DEFAULT_METHOD if self.device.type == "cpu" else GPU_METHOD
+            self.refiner = METHODS.build({"name": name, "options": options, "device": str(self.device)})
 
-    @torch.no_grad()
     def _predict(self, src, tgt, src_normals, tgt_normals) -> MethodResult:
-        src_s, tgt_s = _subsample(src, self.num_points), _subsample(tgt, self.num_points)
-        src_t, tgt_t, radius = _normalise(src_s, tgt_s)
-        normals = [estimate_normals(cloud.numpy()) for cloud in (src_t, tgt_t)]
+        import torch
+
+        from linereg.pointcloud import estimate_normals
+        from linereg.structures import PairBatch
+
+        src_s, tgt_s = fps(src, self.num_points), fps(tgt, self.num_points)
+        radius = float(max(np.linalg.norm(src_s, axis=1).max(), np.linalg.norm(tgt_s, axis=1).max(), 1e-12))
+        clouds = (src_s / radius, tgt_s / radius)
+        normals = [estimate_normals(cloud) for cloud in clouds]
         batch = PairBatch(
-            src_xyz=src_t.float()[None],
-            tgt_xyz=tgt_t.float()[None],
+            src_xyz=torch.from_numpy(clouds[0]).float()[None],
+            tgt_xyz=torch.from_numpy(clouds[1]).float()[None],
             src_normals=torch.from_numpy(normals[0]).float()[None],
             tgt_normals=torch.from_numpy(normals[1]).float()[None],
         ).to(self.device)
-        transform = self.model(batch).transform[0].double().cpu().numpy()
-        return MethodResult(transform=_unscale(transform, radius))
+        with torch.no_grad():
+            transform = self.model(batch).transform[0].double().cpu().numpy()
+        transform[:3, 3] *= radius
+        return MethodResult(transform=transform)
 
     def __call__(self, src, tgt, src_normals=None, tgt_normals=None) -> MethodResult:
         """Register ``src (N, 3)`` onto ``tgt (M, 3)`` (numpy); normals are re-estimated on the subsets."""
@@ -172,8 +182,11 @@ def _build(method: Any, device: str | None, options: dict[str, Any]):
     """The method object and a JSON-able description of it."""
     if isinstance(method, Mapping):
         config = {**method, **options}
-    elif isinstance(method, str) and (method == "default" or method in METHODS):
-        config = {"name": DEFAULT_METHOD if method == "default" else method, **options}
+    elif method == "default":
+        on_cpu = device is None or str(device) == "cpu"
+        config = {"name": DEFAULT_METHOD if on_cpu else GPU_METHOD, **options}
+    elif isinstance(method, str) and method in METHODS:
+        config = {"name": method, **options}
     elif isinstance(method, str | os.PathLike) and Path(method).expanduser().exists():
         settings = {"device": device or "cpu", **options}
         return LearnedRegistration(Path(method).expanduser(), **settings), {"checkpoint": str(method), **options}
@@ -237,9 +250,9 @@ def register(
     transform = np.asarray(result.transform, dtype=np.float64)
     info = {"method": description, **result.info}
     if fitness_threshold is not None or "fitness" not in info:
-        tgt_fit = _subsample(tgt, 2048)
-        threshold = fitness_threshold or 3.0 * point_spacing(torch.from_numpy(tgt_fit))
-        info.update(alignment_quality(_subsample(src, 2048), tgt_fit, transform, threshold))
+        tgt_fit = fps(tgt, 2048)
+        threshold = fitness_threshold or 3.0 * point_spacing(tgt_fit)
+        info.update(alignment_quality(fps(src, 2048), tgt_fit, transform, threshold))
         info["fitness_threshold"] = threshold
     if initial is not None:
         transform = transform @ initial

@@ -13,6 +13,7 @@ not centre internally are not handicapped by the initial offset.
 
 from __future__ import annotations
 
+import importlib
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -40,7 +41,45 @@ class MethodResult:
 
 
 Method = Callable[..., MethodResult]
-METHODS: Registry[Method] = Registry("registration method")
+
+
+class MethodRegistry(Registry[Method]):
+    """The methods' registry; the torch solvers and the Open3D baselines register on first need.
+
+    ``robust`` (numpy, :mod:`linereg.registration.robust`) is registered when the package is
+    imported; a name not yet registered, or a listing, imports ``lazy_modules`` first, so that
+    ``linereg.register`` with the default method does not import torch or Open3D.
+    """
+
+    lazy_modules = ("linereg.registration.solvers", "linereg.registration.baselines")
+
+    def __init__(self, kind: str) -> None:
+        super().__init__(kind)
+        self._loaded = False
+
+    def load_all(self) -> None:
+        """Import every module that registers methods."""
+        if not self._loaded:
+            self._loaded = True
+            for module in self.lazy_modules:
+                importlib.import_module(module)
+
+    def get(self, name: str) -> Method:
+        if name not in self._builders:
+            self.load_all()
+        return super().get(name)
+
+    def names(self, pattern: str = "*") -> list[str]:
+        self.load_all()
+        return super().names(pattern)
+
+    def __contains__(self, name: str) -> bool:
+        if name not in self._builders:
+            self.load_all()
+        return super().__contains__(name)
+
+
+METHODS = MethodRegistry("registration method")
 
 
 def translation(offset: np.ndarray) -> np.ndarray:

@@ -19,10 +19,9 @@ returned transform applies to the full cloud.
 from __future__ import annotations
 
 import contextlib
-import itertools
 import warnings
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -36,9 +35,17 @@ from linereg.losses.base import AlignmentLoss
 from linereg.losses.chamfer import welsch
 from linereg.losses.line_intersection import LineMetricOptions, line_correspondences
 from linereg.metrics import rotation_error_deg
-from linereg.pointcloud import farthest_point_sampling, knn
+from linereg.pointcloud import farthest_point_sampling
 from linereg.procrustes import weighted_procrustes
 from linereg.registration.methods import METHODS, MethodResult, run_centered
+from linereg.registration.robust import (
+    alignment_quality,
+    cube_rotations,
+    degeneracy,
+    options_from,
+    point_spacing,
+    polish_scales,
+)
 from linereg.se3 import se3_exp, transform_points
 
 Monitor = Callable[[int, np.ndarray, float], dict[str, float]]
@@ -443,27 +450,6 @@ class _BatchedChamferWelsch:
         return chamfer_welsch_batched(src, tgt, self.nu0, two_sided), {}
 
 
-def alignment_quality(src: np.ndarray, tgt: np.ndarray, transform: np.ndarray, threshold: float) -> dict[str, float]:
-    """Open3D's registration quality of ``transform`` (4, 4) mapping ``src (N, 3)`` onto ``tgt (M, 3)``.
-
-    Returns:
-        ``fitness`` (fraction of source points with a target point within ``threshold``) and
-        ``inlier_rmse`` (RMS distance of those points; 0 when there are none).
-    """
-    src_t = torch.from_numpy(np.asarray(src, dtype=np.float64))
-    tgt_t = torch.from_numpy(np.asarray(tgt, dtype=np.float64))
-    moved = transform_points(torch.from_numpy(np.asarray(transform, dtype=np.float64)), src_t)
-    distances = knn(moved, tgt_t, 1).dists[:, 0]
-    inliers = distances <= threshold
-    rmse = float(distances[inliers].square().mean().sqrt()) if bool(inliers.any()) else 0.0
-    return {"fitness": float(inliers.double().mean()), "inlier_rmse": rmse}
-
-
-def point_spacing(points: torch.Tensor) -> float:
-    """Median distance of a point of ``points (N, 3)`` to its nearest other point."""
-    return float(knn(points, points, 1, exclude_self=True).dists.median())
-
-
 def welsch_irls(poses: torch.Tensor, src: torch.Tensor, nearest: NearestTarget, nus: Sequence[float]) -> torch.Tensor:
     """Robust point-to-point ICP: one Welsch-weighted Procrustes step per scale in ``nus``.
 
@@ -492,37 +478,6 @@ def welsch_irls(poses: torch.Tensor, src: torch.Tensor, nearest: NearestTarget, 
     return poses
 
 
-def cube_rotations() -> torch.Tensor:
-    """The 24 rotations of the cube (signed axis permutations with determinant +1), the
-    identity first, as ``(24, 4, 4)`` float64 transforms."""
-    rotations = [np.eye(3)]
-    for permutation in itertools.permutations(range(3)):
-        for signs in itertools.product((1.0, -1.0), repeat=3):
-            matrix = np.zeros((3, 3))
-            matrix[range(3), permutation] = signs
-            if np.linalg.det(matrix) > 0 and not np.allclose(matrix, np.eye(3)):
-                rotations.append(matrix)
-    transforms = torch.eye(4, dtype=torch.float64).repeat(len(rotations), 1, 1)
-    transforms[:, :3, :3] = torch.from_numpy(np.stack(rotations))
-    return transforms
-
-
-def degeneracy(points: np.ndarray, name: str) -> str | None:
-    """``None`` for a cloud spread in 2 or 3 directions; a warning for a collinear one.
-
-    Raises:
-        ValueError: all points coincide (no direction at all), naming the cloud.
-    """
-    centred = np.asarray(points, dtype=np.float64) - np.mean(points, axis=0)
-    singular = np.linalg.svd(centred, compute_uv=False)
-    scale = max(float(np.abs(points).max()), 1e-300)
-    if singular[0] <= 1e-9 * scale * np.sqrt(len(points)):
-        raise ValueError(f"{name}: all {len(points)} points coincide; no rotation can be determined")
-    if singular[1] <= 1e-6 * singular[0]:
-        return f"{name}: the {len(points)} points are collinear; the rotation about their line is arbitrary"
-    return None
-
-
 @contextlib.contextmanager
 def torch_threads(count: int | None):
     """Run the block with ``count`` torch CPU threads (``None``: leave them), then restore."""
@@ -538,8 +493,8 @@ def torch_threads(count: int | None):
 
 
 @dataclass(frozen=True)
-class RobustOptions:
-    """Settings of :class:`RobustRegistration` (lengths in the unit ball of the centred pair).
+class AdamRobustOptions:
+    """Settings of :class:`AdamRobustRegistration` (lengths in the unit ball of the centred pair).
 
     Attributes:
         starts: initial rotations of the first round (:func:`start_poses`).
@@ -624,23 +579,11 @@ class RobustOptions:
         start_poses(self.starts)
 
 
-DEFAULT_ROBUST = RobustOptions()
-"""The settings of the ``register`` default."""
 
 
-def polish_scales(options: RobustOptions, spacing: float) -> np.ndarray:
-    """Welsch scales of the IRLS polish: ``polish_steps`` values falling geometrically from
-    ``polish_nu`` to ``polish_end`` times the target's point ``spacing`` over the first half,
-    then held (the last steps settle at the fine scale)."""
-    if options.polish_steps == 0:
-        return np.zeros(0)
-    fine = min(options.polish_end * spacing, options.polish_nu)
-    falling = np.geomspace(options.polish_nu, fine, max((options.polish_steps + 1) // 2, 1))
-    return np.concatenate([falling, np.full(options.polish_steps - len(falling), fine)])[: options.polish_steps]
-
-
-class RobustRegistration(_Solver):
-    """The ``register`` default: multi-start CD-W, Welsch IRLS, fixed-scale selection.
+class AdamRobustRegistration(_Solver):
+    """``robust_adam``: the torch twin of the ``register`` default (the previous default), on any
+    torch device: multi-start Adam on CD-W, Welsch IRLS, fixed-scale selection.
 
     1. Both clouds centred (:func:`~linereg.registration.methods.run_centered`) and scaled into the unit ball.
     2. Coarse: Adam on CD-W (``nu0`` 2), two-sided and source-to-target only (``coarse_sides``),
@@ -658,7 +601,7 @@ class RobustRegistration(_Solver):
     starts x coarse sides), the selection ``cost``, and ``warnings`` (collinear clouds).
 
     Args:
-        options: :class:`RobustOptions` or a mapping of its fields.
+        options: :class:`AdamRobustOptions` or a mapping of its fields.
         num_points: FPS size of each cloud for the polish, selection and refinement.
         seed: seeds the refinement's lines.
         threads: torch CPU threads (``None``: 1 up to 20000 points per cloud, else torch's default;
@@ -672,7 +615,7 @@ class RobustRegistration(_Solver):
 
     def __init__(
         self,
-        options: RobustOptions | Mapping[str, Any] | None = None,
+        options: AdamRobustOptions | Mapping[str, Any] | None = None,
         num_points: int | None = 2048,
         seed: int = 0,
         threads: int | None = None,
@@ -682,14 +625,7 @@ class RobustRegistration(_Solver):
         monitor: Monitor | None = None,
         center: bool = True,
     ) -> None:
-        if options is None:
-            options = RobustOptions()
-        elif not isinstance(options, RobustOptions):
-            known = {f.name for f in fields(RobustOptions)}
-            unknown = set(options) - known
-            if unknown:
-                raise TypeError(f"unknown option(s) {sorted(unknown)}; known: {sorted(known)}")
-            options = RobustOptions(**options)
+        options = options_from(options, AdamRobustOptions)
         if threads is not None and threads < 1:
             raise ValueError(f"threads must be >= 1 or None, got {threads}")
         if fitness_threshold is not None and not fitness_threshold > 0:
@@ -738,7 +674,7 @@ class RobustRegistration(_Solver):
         tgt_fit = _subsample(np.asarray(tgt, dtype=np.float64), self.num_points)
         threshold = self.fitness_threshold
         if threshold is None:
-            threshold = 3.0 * point_spacing(torch.from_numpy(tgt_fit))
+            threshold = 3.0 * point_spacing(tgt_fit)
         quality = alignment_quality(_subsample(src, self.num_points), tgt_fit, result.transform, threshold)
         info = {**result.info, **quality, "fitness_threshold": threshold, "warnings": notes}
         if self.monitor is not None:
@@ -757,7 +693,7 @@ class RobustRegistration(_Solver):
         return poses, fixed_scale_fit(poses, src, nearest, options.select_nu)
 
     def _doubt(self, poses: torch.Tensor, costs: torch.Tensor, src, nearest, inlier_distance) -> tuple[bool, float]:
-        """``(doubtful, confidence)`` of the lowest-cost candidate (see :class:`RobustOptions`)."""
+        """``(doubtful, confidence)`` of the lowest-cost candidate (see :class:`AdamRobustOptions`)."""
         options = self.options
         best = int(costs.argmin())
         distances, _ = nearest(transform_points(poses[best], src))
@@ -776,7 +712,7 @@ class RobustRegistration(_Solver):
         src_coarse = _subsample(src_t, options.coarse_points)
         tgt_coarse = _subsample(tgt_t, 2 * options.coarse_points)
         nearest = NearestTarget(tgt_t)
-        spacing = point_spacing(tgt_t)
+        spacing = point_spacing(tgt_t.cpu().numpy())
         nus = polish_scales(options, spacing)
         inlier_distance = options.fitness_spacings * spacing
         poses, costs = self._round(
@@ -786,7 +722,9 @@ class RobustRegistration(_Solver):
         rounds = 1
         if doubtful:
             iterations = options.escalate_factor * options.coarse_iterations
-            more, more_costs = self._round(src_t, nearest, src_coarse, tgt_coarse, cube_rotations(), iterations, nus)
+            cube = torch.eye(4, dtype=torch.float64).repeat(24, 1, 1)
+            cube[:, :3, :3] = torch.from_numpy(cube_rotations())
+            more, more_costs = self._round(src_t, nearest, src_coarse, tgt_coarse, cube, iterations, nus)
             poses, costs = torch.cat([poses, more]), torch.cat([costs, more_costs])
             doubtful, confidence = self._doubt(poses, costs, src_t, nearest, inlier_distance)
             rounds = 2
@@ -808,6 +746,6 @@ class RobustRegistration(_Solver):
 
 
 # The constructors' defaults are the methods' defaults: the classes themselves are the builders.
-METHODS.register("robust")(RobustRegistration)
+METHODS.register("robust_adam")(AdamRobustRegistration)
 METHODS.register("adam_loss")(AdamRegistration)
 METHODS.register("svd_irls")(IRLSRegistration)

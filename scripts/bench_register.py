@@ -2,19 +2,21 @@
 
     python scripts/bench_register.py                 # 5 partial-vs-whole airplane pairs, 1024 vs 2048 points
     python scripts/bench_register.py --pairs 10 --commands 3 --json
-    python scripts/bench_register.py --previous '{"coarse_points": 256, "coarse_sides": ["both"]}'
+    python scripts/bench_register.py --previous '{"name": "robust", "options": {"rounds": 1}}'
 
 Pairs: :mod:`linereg.datasets.partial_vs_whole` on the ModelNet40 airplanes of the shared data (source a
 hidden-point-removal view of 1024 points, target 2048 points of the whole shape). In one run,
 first on the machine as it is ("quiet"), then again while this script keeps one extra
 CPU-bound process spinning ("busy core"), it measures
 
-* the solver (``RobustRegistration``, the ``register`` default) per pair, after a warm-up pair;
+* the solver (``robust``, :class:`~linereg.registration.robust.RobustRegistration`, the
+  ``register`` default, numpy) per pair, after a warm-up pair;
 * Open3D point-to-point ICP on the same pairs (the reference of the ratios);
-* optionally (``--previous``) the solver with other :class:`~linereg.registration.solvers.RobustOptions`, e.g. a
-  former default, on the same pairs: a before/after ratio measured in the same run;
-* the wall time of ``python -m train.register source=... target=...`` (start-up included), and
-  of ``python -c "import torch"`` (the floor any torch command pays).
+* another method on the same pairs (``--previous``, a method config; default ``robust_adam``, the
+  previous default in torch): a before/after ratio measured in the same run;
+* the wall time of ``python -m train.register source=... target=...`` (start-up included), of
+  ``python -c "import linereg.registration.api"`` (the library's start-up; the script fails if
+  that import loads torch), and of ``python -c "import torch"`` (what a torch command pays first).
 
 Absolute times depend on the machine and on what else runs: compare the ratios of one run.
 """
@@ -38,8 +40,6 @@ sys.path.insert(0, str(ROOT))
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
-import linereg.registration.baselines  # noqa: E402  (registers icp_point)
-import linereg.registration.solvers  # noqa: E402  (registers robust)
 from linereg.datasets.partial_vs_whole import partial_vs_whole_pairs  # noqa: E402
 from linereg.io import write_point_cloud  # noqa: E402
 from linereg.metrics import rotation_error_deg  # noqa: E402
@@ -76,16 +76,17 @@ def _wall(command: list[str], cwd: Path, repeats: int) -> float:
     return statistics.median(times)
 
 
-def measure(pairs, folder: Path, commands: int, previous: dict | None = None) -> dict[str, float]:
-    """One row: solver, ICP and command times (medians) and their ratios; with ``previous``
-    (RobustOptions fields) also that solver's time and Err_R on the same pairs."""
+_TORCH_FREE = "import sys, linereg.registration.api; assert 'torch' not in sys.modules, 'torch was imported'"
+
+
+def measure(pairs, folder: Path, commands: int, previous: dict) -> dict[str, float]:
+    """One row: solver, ICP, previous method and command times (medians) and their ratios."""
     robust, robust_err = _solver_times(METHODS.build({"name": "robust"}), pairs)
     icp, icp_err = _solver_times(METHODS.build({"name": "icp_point"}), pairs)
-    before = None
-    if previous is not None:
-        before, before_err = _solver_times(METHODS.build({"name": "robust", "options": previous}), pairs)
-    register = [sys.executable, "-m", "train.register", "source=src.ply", "target=tgt.ply", "progress=false"]
+    before, before_err = _solver_times(METHODS.build(previous), pairs)
+    register = [sys.executable, "-m", "train.register", "source=src.ply", "target=tgt.ply"]
     command = _wall(register, folder, commands)
+    library = _wall([sys.executable, "-c", _TORCH_FREE], folder, commands)
     floor = _wall([sys.executable, "-c", "import torch"], folder, commands)
     row = {
         "solver_s": statistics.median(robust),
@@ -94,13 +95,13 @@ def measure(pairs, folder: Path, commands: int, previous: dict | None = None) ->
         "icp_s": statistics.median(icp),
         "icp_err_r_deg_median": float(np.median(icp_err)),
         "command_s": command,
+        "import_api_s": library,
         "import_torch_s": floor,
+        "previous_s": statistics.median(before),
+        "previous_err_r_deg_median": float(np.median(before_err)),
     }
     row["solver_vs_icp"] = row["solver_s"] / row["icp_s"]
-    if before is not None:
-        row["previous_s"] = statistics.median(before)
-        row["previous_err_r_deg_median"] = float(np.median(before_err))
-        row["previous_vs_icp"] = row["previous_s"] / row["icp_s"]
+    row["previous_vs_icp"] = row["previous_s"] / row["icp_s"]
     row["command_vs_import_torch"] = command / floor
     return row
 
@@ -111,11 +112,13 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--commands", type=int, default=3, help="runs of each command")
     parser.add_argument("--json", action="store_true")
     parser.add_argument(
-        "--previous", type=json.loads, default=None, help="RobustOptions fields (JSON) of a solver to compare with"
+        "--previous",
+        type=json.loads,
+        default={"name": "robust_adam"},
+        help="method config (JSON) to compare with (default: robust_adam, the previous default)",
     )
     args = parser.parse_args(argv)
-    if args.previous is not None:
-        linereg.registration.solvers.RobustOptions(**args.previous)  # a bad field fails here, before any timing
+    METHODS.build(args.previous)  # a bad config fails here, before any timing
     data = shared_data_dir()
     if data is None:
         parser.error("the shared data folder was not found (set $LINEREG_SHARED_DATA)")
@@ -143,24 +146,23 @@ def main(argv: list[str] | None = None) -> int:
     print(f"{args.pairs} partial-vs-whole airplane pairs (1024 vs 2048 points), {os.cpu_count()} CPUs\n")
     print(
         "| machine | solver median (s) | max (s) | median Err_R (deg) | ICP (s) | solver / ICP "
-        "| command wall (s) | import torch (s) | command / import torch |"
+        "| command wall (s) | import api (s) | import torch (s) | command / import torch |"
     )
-    print("|---|---|---|---|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|---|---|---|---|")
     for name, row in rows.items():
         print(
             f"| {name} | {row['solver_s']:.2f} | {row['solver_max_s']:.2f} | {row['solver_err_r_deg_median']:.3f} "
             f"| {row['icp_s']:.3f} | {row['solver_vs_icp']:.0f}x | {row['command_s']:.2f} "
-            f"| {row['import_torch_s']:.2f} | {row['command_vs_import_torch']:.2f}x |"
+            f"| {row['import_api_s']:.2f} | {row['import_torch_s']:.2f} | {row['command_vs_import_torch']:.2f}x |"
         )
-    if args.previous is not None:
-        print(f"\nprevious solver ({json.dumps(args.previous)}):\n")
-        print("| machine | previous median (s) | median Err_R (deg) | previous / ICP | solver / previous |")
-        print("|---|---|---|---|---|")
-        for name, row in rows.items():
-            print(
-                f"| {name} | {row['previous_s']:.2f} | {row['previous_err_r_deg_median']:.3f} "
-                f"| {row['previous_vs_icp']:.0f}x | {row['solver_s'] / row['previous_s']:.2f}x |"
-            )
+    print(f"\nprevious method ({json.dumps(args.previous)}), same pairs:\n")
+    print("| machine | previous median (s) | median Err_R (deg) | previous / ICP | solver / previous |")
+    print("|---|---|---|---|---|")
+    for name, row in rows.items():
+        print(
+            f"| {name} | {row['previous_s']:.2f} | {row['previous_err_r_deg_median']:.3f} "
+            f"| {row['previous_vs_icp']:.0f}x | {row['solver_s'] / row['previous_s']:.2f}x |"
+        )
     busy = rows["busy core"]
     print(
         f"\nbusy core / quiet: solver {busy['solver_s_busy_vs_quiet']:.2f}x, "

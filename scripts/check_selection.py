@@ -3,7 +3,7 @@
     python scripts/check_selection.py outputs/benchmark/partial_vs_whole/<run>/results.json
 
 For every pair of the run (rebuilt from its settings) and every method whose pose ended more than
-``--wrong-deg`` off, compare :func:`linereg.registration.solvers.fixed_scale_fit` (the cost that picks the best
+``--wrong-deg`` off, compare :func:`linereg.registration.robust.fixed_scale_cost` (the cost that picks the best
 start, computed as the solver does: both clouds centred and scaled into the unit ball) at the
 ground truth and at that wrong pose. The selection can only go wrong where a wrong pose costs less.
 """
@@ -16,13 +16,13 @@ import sys
 from pathlib import Path
 
 import numpy as np
-import torch
+from scipy.spatial import cKDTree
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from linereg.datasets.benchmark_pairs import select_pairs
 from linereg.registration.methods import translation
-from linereg.registration.solvers import DEFAULT_ROBUST, NearestTarget, fixed_scale_fit
+from linereg.registration.robust import RobustOptions, fixed_scale_cost
 
 
 def _solver_frame(transform: np.ndarray, src: np.ndarray, tgt: np.ndarray) -> tuple[np.ndarray, float]:
@@ -51,10 +51,12 @@ def main(argv: list[str] | None = None) -> int:
         src, tgt = pair.src_xyz.astype(np.float64), pair.tgt_xyz.astype(np.float64)
         truth, radius = _solver_frame(pair.gt_transform.astype(np.float64), src, tgt)
         found, _ = _solver_frame(np.asarray(record["transform"]), src, tgt)
-        src_t = torch.from_numpy((src - src.mean(axis=0)) / radius)
-        tgt_t = torch.from_numpy((tgt - tgt.mean(axis=0)) / radius)
-        costs = fixed_scale_fit(
-            torch.from_numpy(np.stack([truth, found])), src_t, NearestTarget(tgt_t), DEFAULT_ROBUST.select_nu
+        poses = np.stack([truth, found])
+        costs = fixed_scale_cost(
+            (poses[:, :3, :3], poses[:, :3, 3]),
+            (src - src.mean(axis=0)) / radius,
+            cKDTree((tgt - tgt.mean(axis=0)) / radius),
+            RobustOptions().select_nu,
         )
         wrong += 1
         ranked_right += int(costs[0] < costs[1])

@@ -140,3 +140,14 @@ def test_bad_init_method_and_options_are_named(pair, tmp_path):
         linereg.register(src, tgt, not_an_option=1)
     with pytest.raises(ValueError, match="is a folder"):
         linereg.register(tmp_path, tgt)
+
+
+def test_the_default_method_on_another_device_is_the_torch_twin():
+    from linereg.registration.api import _build
+    from linereg.registration.robust import RobustRegistration
+    from linereg.registration.solvers import AdamRobustRegistration
+
+    assert isinstance(_build("default", None, {})[0], RobustRegistration)
+    assert isinstance(_build("default", "cpu", {})[0], RobustRegistration)
+    solver, description = _build("default", "cuda", {})
+    assert isinstance(solver, AdamRobustRegistration) and description["name"] == "robust_adam"

@@ -20,7 +20,7 @@ from linereg.paths import REPO_ROOT
 from linereg.registration import METHODS
 from linereg.registration.solvers import start_poses
 from linereg.se3 import euler_to_rotmat, rotation_angle, rt_to_matrix
-from linereg.train.register import RegisterError, parse_init, register_files
+from linereg.train.register import RegisterError, method_config, parse_init, register_files
 
 
 def surface(n: int, seed: int) -> np.ndarray:
@@ -266,3 +266,11 @@ def _repo_env() -> dict[str, str]:
     env = dict(os.environ)
     env["PYTHONPATH"] = os.pathsep.join([str(REPO_ROOT), env.get("PYTHONPATH", "")])
     return env
+
+
+def test_the_robust_solver_runs_in_numpy_on_the_cpu_and_its_torch_twin_elsewhere():
+    assert method_config(_compose(source="a", target="b")) == {"name": "robust", "options": {}, "num_points": 2048}
+    on_gpu = method_config(_compose(source="a", target="b", device="cuda", threads=2))
+    assert on_gpu["name"] == "robust_adam" and on_gpu["device"] == "cuda" and on_gpu["threads"] == 2
+    with pytest.raises(RegisterError, match="threads=2: the robust solver on the CPU is numpy"):
+        method_config(_compose(source="a", target="b", threads=2))

@@ -1,4 +1,5 @@
-"""The ``register`` default, :class:`linereg.registration.solvers.RobustRegistration`, and its building blocks."""
+"""``robust_adam``, :class:`linereg.registration.solvers.AdamRobustRegistration` (the torch twin of the
+``register`` default), and its building blocks."""
 
 from __future__ import annotations
 
@@ -11,14 +12,12 @@ import torch
 from linereg.losses.chamfer import chamfer_welsch_distance
 from linereg.registration import METHODS
 from linereg.registration.solvers import (
+    AdamRobustOptions as RobustOptions,
+)
+from linereg.registration.solvers import (
     NearestTarget,
-    RobustOptions,
-    alignment_quality,
     chamfer_welsch_batched,
-    cube_rotations,
-    degeneracy,
     fixed_scale_fit,
-    polish_scales,
     torch_threads,
     welsch_irls,
 )
@@ -102,38 +101,6 @@ def test_fixed_scale_fit_is_lowest_at_the_true_pose_and_matches_its_definition()
     torch.testing.assert_close(costs[1], (1 - torch.exp(-nearest.square() / (2 * 0.05**2))).mean())
 
 
-def test_alignment_quality_counts_inliers_as_open3d_does():
-    src = np.array([[0.0, 0, 0], [1, 0, 0], [5, 0, 0]])
-    tgt = np.array([[0.0, 0.1, 0], [1, 0, 0.2]])
-    quality = alignment_quality(src, tgt, np.eye(4), threshold=0.15)
-    assert quality["fitness"] == pytest.approx(1 / 3)
-    assert quality["inlier_rmse"] == pytest.approx(0.1)
-    assert alignment_quality(src, tgt, np.eye(4), threshold=0.01) == {"fitness": 0.0, "inlier_rmse": 0.0}
-
-
-def test_cube_rotations_are_24_distinct_proper_rotations():
-    rotations = cube_rotations()[:, :3, :3]
-    assert rotations.shape == (24, 3, 3)
-    torch.testing.assert_close(rotations[0], torch.eye(3, dtype=torch.float64))
-    torch.testing.assert_close(torch.linalg.det(rotations), torch.ones(24, dtype=torch.float64))
-    gaps = rotation_angle(rotations[:, None] @ rotations[None].transpose(-1, -2))
-    assert float((gaps + torch.eye(24, dtype=torch.float64) * 10).min()) > math.pi / 2 - 1e-9
-
-
-def test_degeneracy():
-    assert degeneracy(surface(50, 0), "source") is None
-    assert "collinear" in degeneracy(np.outer(np.arange(6.0), [1, 2, 3]), "source")
-    with pytest.raises(ValueError, match="target: all 7 points coincide"):
-        degeneracy(np.full((7, 3), 2.5), "target")
-
-
-def test_polish_scales_fall_then_hold():
-    options = RobustOptions(polish_steps=6, polish_nu=0.08, polish_end=0.5)
-    scales = polish_scales(options, spacing=0.02)
-    np.testing.assert_allclose(scales, [0.08, math.sqrt(0.08 * 0.01), 0.01, 0.01, 0.01, 0.01])
-    assert len(polish_scales(RobustOptions(polish_steps=0), 0.02)) == 0
-
-
 def test_options_are_checked():
     with pytest.raises(ValueError, match="coarse_points must be > 0"):
         RobustOptions(coarse_points=0)
@@ -147,7 +114,7 @@ def test_options_are_checked():
         RobustOptions(coarse_sides=())
     assert RobustOptions(coarse_sides=["source"]).coarse_sides == ("source",)
     with pytest.raises(TypeError, match="unknown option"):
-        METHODS.build({"name": "robust", "options": {"startz": 3}})
+        METHODS.build({"name": "robust_adam", "options": {"startz": 3}})
 
 
 @pytest.fixture(scope="module")
@@ -160,7 +127,7 @@ def partial_pair():
 
 def test_robust_registration_recovers_a_partial_view_and_reports_its_quality(partial_pair):
     src, tgt, truth = partial_pair
-    result = METHODS.build({"name": "robust", "num_points": 1024})(src, tgt)
+    result = METHODS.build({"name": "robust_adam", "num_points": 1024})(src, tgt)
     assert rotation_error_deg(result.transform, truth) < 0.5
     info = result.info
     assert info["fitness"] > 0.95 and 0 < info["inlier_rmse"] < info["fitness_threshold"]
@@ -170,7 +137,7 @@ def test_robust_registration_recovers_a_partial_view_and_reports_its_quality(par
 
 def test_a_doubtful_pose_gets_a_second_round_from_more_starts(partial_pair):
     src, tgt, truth = partial_pair
-    result = METHODS.build({"name": "robust", "num_points": 512, "options": {"max_cost": 1e-6}})(src, tgt)
+    result = METHODS.build({"name": "robust_adam", "num_points": 512, "options": {"max_cost": 1e-6}})(src, tgt)
     assert result.info["rounds"] == 2 and result.info["starts"] == 2 * (4 + 24)
     assert result.info["converged"] is False
     assert rotation_error_deg(result.transform, truth) < 1.0
@@ -185,9 +152,9 @@ def test_a_near_symmetric_pose_that_the_first_round_misses_is_found_by_the_secon
     truth = pose([120, -100, 45], [0.2, -0.1, 0.15])
     tgt = apply(truth, whole)
     never_doubt = {"doubt_ratio": 1.0, "min_fitness": 0.0, "max_cost": 1.0}
-    first_round = METHODS.build({"name": "robust", "num_points": 512, "options": never_doubt})(src, tgt)
+    first_round = METHODS.build({"name": "robust_adam", "num_points": 512, "options": never_doubt})(src, tgt)
     assert first_round.info["rounds"] == 1 and rotation_error_deg(first_round.transform, truth) > 90
-    result = METHODS.build({"name": "robust", "num_points": 512})(src, tgt)
+    result = METHODS.build({"name": "robust_adam", "num_points": 512})(src, tgt)
     assert result.info["rounds"] == 2 and rotation_error_deg(result.transform, truth) < 1.0
     assert result.info["converged"] is False  # the flipped basin still scores within doubt_ratio
 
@@ -195,7 +162,7 @@ def test_a_near_symmetric_pose_that_the_first_round_misses_is_found_by_the_secon
 def test_init_is_applied_to_the_source_first(partial_pair):
     src, tgt, truth = partial_pair
     flip = pose([180, 0, 0], [0, 0, 0])
-    single = {"name": "robust", "num_points": 512, "options": {"starts": 1, "max_cost": 1.0}}
+    single = {"name": "robust_adam", "num_points": 512, "options": {"starts": 1, "max_cost": 1.0}}
     result = METHODS.build(single)(apply(np.linalg.inv(flip), src), tgt, init=flip)
     assert rotation_error_deg(result.transform @ np.linalg.inv(flip), truth) < 0.5
 
@@ -203,7 +170,7 @@ def test_init_is_applied_to_the_source_first(partial_pair):
 def test_threads_are_restored_and_results_are_deterministic(partial_pair):
     src, tgt, _ = partial_pair
     before = torch.get_num_threads()
-    method = METHODS.build({"name": "robust", "num_points": 512, "threads": 1})
+    method = METHODS.build({"name": "robust_adam", "num_points": 512, "threads": 1})
     first, second = method(src, tgt), method(src, tgt)
     assert torch.get_num_threads() == before
     np.testing.assert_array_equal(first.transform, second.transform)
@@ -214,11 +181,11 @@ def test_threads_are_restored_and_results_are_deterministic(partial_pair):
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
 def test_robust_registration_on_cuda_matches_cpu(partial_pair):
     src, tgt, _ = partial_pair
-    on_cpu = METHODS.build({"name": "robust", "num_points": 512})(src, tgt)
-    on_gpu = METHODS.build({"name": "robust", "num_points": 512, "device": "cuda"})(src, tgt)
+    on_cpu = METHODS.build({"name": "robust_adam", "num_points": 512})(src, tgt)
+    on_gpu = METHODS.build({"name": "robust_adam", "num_points": 512, "device": "cuda"})(src, tgt)
     np.testing.assert_allclose(on_gpu.transform, on_cpu.transform, atol=1e-4)
 
 
 def test_the_device_argument_is_checked():
     with pytest.raises(RuntimeError):
-        METHODS.build({"name": "robust", "device": "nonsense"})
+        METHODS.build({"name": "robust_adam", "device": "nonsense"})

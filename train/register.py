@@ -123,13 +123,14 @@ def method_config(cfg: DictConfig) -> dict[str, Any] | str:
         if cfg.loss is not None:
             raise RegisterError(f"loss={cfg.loss} needs solver=adam (the robust solver has its own losses)")
         options = OmegaConf.to_container(cfg.robust) if cfg.robust else {}
-        return {
-            "name": "robust",
-            "options": options,
-            "device": cfg.device or "cpu",
-            "threads": cfg.threads,
-            **common,
-        }
+        if cfg.device in (None, "cpu"):
+            if cfg.threads is not None:
+                raise RegisterError(
+                    f"threads={cfg.threads}: the robust solver on the CPU is numpy (one thread); "
+                    "threads= sets the torch threads of device=... runs"
+                )
+            return {"name": "robust", "options": options, "num_points": cfg.num_points}
+        return {"name": "robust_adam", "options": options, "device": cfg.device, "threads": cfg.threads, **common}
     if cfg.loss is not None:
         loss = {"name": cfg.loss} if isinstance(cfg.loss, str) else OmegaConf.to_container(cfg.loss)
         stages = [{"loss": loss, "iterations": cfg.iterations, "lr": cfg.lr}]
@@ -151,12 +152,8 @@ def register_files(cfg: DictConfig, out_dir: Path) -> tuple[Any, dict[str, Any]]
     Raises:
         RegisterError: a bad argument or file, naming it.
     """
-    import torch
-
     from linereg.io import read_transform, write_point_cloud, write_transform
-    from linereg.metrics import registration_errors, rotation_error_deg
     from linereg.registration import register
-    from linereg.se3 import transform_normals
 
     src = read_cloud(cfg.source, "source")
     tgt = read_cloud(cfg.target, "target")
@@ -168,7 +165,11 @@ def register_files(cfg: DictConfig, out_dir: Path) -> tuple[Any, dict[str, Any]]
             raise RegisterError(f"gt={cfg.gt}: {error}") from error
     init = parse_init(cfg.init)
     config = method_config(cfg)
-    if gt is not None and isinstance(config, dict) and config["name"] != "robust":
+    if gt is not None and isinstance(config, dict) and not config["name"].startswith("robust"):
+        import torch
+
+        from linereg.metrics import rotation_error_deg
+
         R_gt = torch.from_numpy(gt[:3, :3])
 
         def monitor(step: int, transform: np.ndarray, loss: float) -> dict[str, float]:
@@ -212,17 +213,18 @@ def register_files(cfg: DictConfig, out_dir: Path) -> tuple[Any, dict[str, Any]]
         "warnings": notes,
     }
     if gt is not None:
+        import torch
+
+        from linereg.metrics import registration_errors
+
         errors = registration_errors(
             torch.from_numpy(transform)[None], torch.from_numpy(gt)[None], torch.from_numpy(src.xyz).double()[None]
         )
         report["metrics"] = {key: float(value[0]) for key, value in errors.items()}
     out_dir.mkdir(parents=True, exist_ok=True)
     write_transform(out_dir / "transform.txt", transform)
-    T = torch.from_numpy(transform)
     moved = (src.xyz.astype(np.float64) @ transform[:3, :3].T + transform[:3, 3]).astype(np.float32)
-    normals = (
-        None if src.normals is None else transform_normals(T, torch.from_numpy(src.normals).double()).float().numpy()
-    )
+    normals = None if src.normals is None else (src.normals @ transform[:3, :3].T).astype(np.float32)
     write_point_cloud(out_dir / "registered.ply", moved, normals)
     (out_dir / "result.json").write_text(json.dumps(report, indent=2, default=float))
     if cfg.picture:

@@ -1,0 +1,670 @@
+"""The ``register`` default in numpy and scipy: multi-start CD-W, Welsch IRLS, fixed-scale selection.
+
+No torch on this path (nor Open3D, numba or matplotlib): ``linereg.register`` and the
+``linereg-register`` command start in about the time numpy and scipy take to import.
+
+The first round and the polish are majorise-minimise (MM) steps of a Welsch objective: match
+points to their nearest neighbours, weight each match by ``exp(-d^2 / 2 nu^2)`` and solve the
+weighted Procrustes problem in closed form. A step cannot increase the objective at a fixed
+``nu`` (the Welsch function is concave in ``d^2``, and new nearest neighbours only shorten the
+distances), so a few dozen steps replace hundreds of gradient steps.
+
+1. Both clouds centred (:func:`~linereg.registration.methods.run_centered`) and scaled together
+   into the unit ball; FPS subsets of ``num_points`` for the polish and the selection.
+2. Round 1, coarse: IRLS on CD-W (:func:`cdw_irls`; ``nu = nu0 * median`` of the nearest
+   distances, recomputed every step) from every start on small FPS subsets, once with both
+   directions and once with the source-to-target term alone (a partial view inside a whole
+   target). All candidates of a round form one batch; merged ones are dropped.
+3. Polish: Welsch IRLS of the source-to-target distances with falling fixed scales
+   (:func:`welsch_irls`, :func:`polish_scales`).
+4. Select the candidate with the lowest :func:`fixed_scale_cost`. When the choice is doubtful
+   (a distinct rival nearly as good, a high cost, a low fitness), round 2 runs Adam on CD-W
+   (:func:`cdw_adam`) from the same starts, then round 3 from the 24 cube rotations, each
+   followed by the polish, and the selection runs over every candidate so far.
+"""
+
+from __future__ import annotations
+
+import itertools
+import warnings
+from collections.abc import Mapping
+from dataclasses import dataclass, fields
+from typing import Any
+
+import fpsample
+import numpy as np
+from scipy.spatial import cKDTree
+
+from linereg.checks import check_points, check_transform
+from linereg.registration.methods import METHODS, MethodResult, run_centered
+
+Poses = tuple[np.ndarray, np.ndarray]
+"""``(R (K, 3, 3), t (K, 3))``: ``K`` rigid transforms ``x -> R x + t``."""
+
+
+def fps(points: np.ndarray, count: int | None) -> np.ndarray:
+    """The farthest-point-sampling subset of ``points (N, 3)`` with ``count`` points (all if ``None``
+    or ``N <= count``); ``fpsample``'s bucket variant, as :func:`linereg.pointcloud.farthest_point_sampling`."""
+    if count is None or len(points) <= count:
+        return points
+    height = int(np.clip(round(np.log2(len(points)) / 2 - 1.5), 1, 10))
+    idx = fpsample.bucket_fps_kdline_sampling(np.ascontiguousarray(points, dtype=np.float32), count, height, 0)
+    return points[np.unique(idx.astype(np.int64))]
+
+
+def as_matrices(poses: Poses) -> np.ndarray:
+    """``(K, 4, 4)`` homogeneous matrices of ``poses``."""
+    rotations, translations = poses
+    out = np.tile(np.eye(4), (len(rotations), 1, 1))
+    out[:, :3, :3] = rotations
+    out[:, :3, 3] = translations
+    return out
+
+
+def apply(poses: Poses, points: np.ndarray) -> np.ndarray:
+    """``(K, N, 3)``: ``points (N, 3)`` moved by each of the ``K`` poses."""
+    rotations, translations = poses
+    return points @ rotations.transpose(0, 2, 1) + translations[:, None, :]
+
+
+def weighted_procrustes(p: np.ndarray, q: np.ndarray, w: np.ndarray) -> tuple[Poses, np.ndarray]:
+    """The rigid ``(R, t)`` minimising ``sum_n w_n |R p_n + t - q_n|^2`` for each of ``K`` problems.
+
+    Args:
+        p, q: ``(K, N, 3)`` corresponding points.
+        w: ``(K, N)`` non-negative weights.
+
+    Returns:
+        ``((R (K, 3, 3), t (K, 3)), valid (K,))``; ``valid`` is false where the weights sum to
+        (almost) zero, and ``R, t`` are then the identity.
+    """
+    total = w.sum(axis=1)
+    valid = total > 1e-12
+    w = (w / np.where(valid, total, 1.0)[:, None])[:, None, :]
+    p_mean = (w @ p)[:, 0]
+    q_mean = (w @ q)[:, 0]
+    cov = ((p - p_mean[:, None]) * w.transpose(0, 2, 1)).transpose(0, 2, 1) @ (q - q_mean[:, None])
+    u, _, vt = np.linalg.svd(cov)
+    v_ut = vt.transpose(0, 2, 1) @ u.transpose(0, 2, 1)
+    sign = np.where(np.linalg.det(v_ut) < 0, -1.0, 1.0)
+    vt[:, 2] *= sign[:, None]
+    rotations = vt.transpose(0, 2, 1) @ u.transpose(0, 2, 1)
+    rotations[~valid] = np.eye(3)
+    translations = q_mean - (rotations @ p_mean[:, :, None])[:, :, 0]
+    translations[~valid] = 0.0
+    return (rotations, translations), valid
+
+
+_REACH = 6.0
+"""Nearest-neighbour searches for a Welsch weight stop at ``_REACH * nu`` (weight below ``exp(-18)``: 0)."""
+
+
+def _welsch_weights(distances: np.ndarray, nu: np.ndarray | float) -> np.ndarray:
+    return np.exp(-np.square(distances) / (2.0 * np.square(nu)))
+
+
+def welsch_cost(distances: np.ndarray, nu: np.ndarray | float) -> np.ndarray:
+    """``mean 1 - exp(-d^2 / 2 nu^2)`` over the last axis: 0 when every distance is 0, 1 when all are far."""
+    return (1.0 - _welsch_weights(distances, nu)).mean(axis=-1)
+
+
+def lower_median(values: np.ndarray) -> np.ndarray:
+    """Median over the last axis, the lower middle value for an even count (``torch.median``'s, as CD-W's scale)."""
+    middle = (values.shape[-1] - 1) // 2
+    return np.partition(values, middle, axis=-1)[..., middle]
+
+
+def cdw(
+    poses: Poses,
+    src: np.ndarray,
+    tgt: np.ndarray,
+    src_tree: cKDTree,
+    tgt_tree: cKDTree,
+    two_sided: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Nearest neighbours of CD-W at each pose, both directions, from trees built once.
+
+    The target-to-source matches query the target moved back by the inverse pose in the tree of
+    the unmoved source, so no tree is built per pose.
+
+    Returns:
+        ``d_xy (K, N)``, ``j (K, N)`` (nearest target of each moved source point), ``d_yx (K, M)``,
+        ``i (K, M)`` (nearest source point of each target point), ``median (K,)`` (of both
+        directions where ``two_sided``, of ``d_xy`` alone elsewhere).
+    """
+    rotations, translations = poses
+    d_xy, j = tgt_tree.query(apply(poses, src), workers=1)
+    back = (tgt[None] - translations[:, None, :]) @ rotations
+    d_yx, i = src_tree.query(back, workers=1)
+    median = np.where(two_sided, lower_median(np.concatenate([d_xy, d_yx], axis=1)), lower_median(d_xy))
+    return d_xy, j, d_yx, i, median
+
+
+def cdw_value(poses: Poses, src: np.ndarray, tgt: np.ndarray, nu: np.ndarray, two_sided: np.ndarray) -> np.ndarray:
+    """CD-W at each pose with a given scale ``nu (K,)``: ``mean psi(d_xy) + [two_sided] mean psi(d_yx)``."""
+    d_xy, _, d_yx, _, _ = cdw(poses, src, tgt, cKDTree(src), cKDTree(tgt), two_sided)
+    return welsch_cost(d_xy, nu[:, None]) + two_sided * welsch_cost(d_yx, nu[:, None])
+
+
+def cdw_irls(
+    poses: Poses,
+    src: np.ndarray,
+    tgt: np.ndarray,
+    two_sided: np.ndarray,
+    nu0: float,
+    steps: int,
+    *,
+    fixed_nu: np.ndarray | None = None,
+    tolerance: float = 1e-6,
+    merge_distance: float = 0.0,
+) -> tuple[Poses, np.ndarray]:
+    """IRLS (MM) on CD-W from every pose at once: the coarse stage.
+
+    Each step matches both ways (:func:`cdw`), weights each match by Welsch's
+    ``exp(-d^2 / 2 nu^2)`` divided by its direction's point count (the objective is a mean per
+    direction) and solves one weighted Procrustes problem over the union of the matches. Where
+    ``two_sided`` is false only the source-to-target matches count: the model of a partial source
+    inside a whole target, which is not pulled towards covering the whole shape.
+
+    Args:
+        poses: ``K`` starting poses.
+        src: ``(N, 3)`` source points; tgt: ``(M, 3)`` target points.
+        two_sided: ``(K,)`` booleans.
+        nu0: ``nu = nu0 * median`` nearest distance of the current pose (CD-W's scale).
+        steps: most IRLS steps; a pose that moves less than ``tolerance`` stops early.
+        fixed_nu: ``(K,)`` scales held constant instead (then every step decreases CD-W at that scale).
+        merge_distance: a pose whose rotation (as a chord: ``|R_a - R_b|`` max entry) and
+            translation both lie within this of an earlier pose with the same ``two_sided``
+            has merged into its basin: it stops and is flagged (0: never).
+
+    Returns:
+        ``(poses, merged (K,))``: the ``K`` final poses, and which of them merged into an earlier one.
+    """
+    src_tree, tgt_tree = cKDTree(src), cKDTree(tgt)
+    rotations, translations = (array.copy() for array in poses)
+    active = np.ones(len(rotations), dtype=bool)
+    merged = np.zeros(len(rotations), dtype=bool)
+    same_side = two_sided[:, None] == two_sided[None, :]
+    earlier = np.tri(len(rotations), k=-1, dtype=bool)
+    scale = np.concatenate([np.full(len(src), 1.0 / len(src)), np.full(len(tgt), 1.0 / len(tgt))])
+    for _ in range(steps):
+        if not active.any():
+            break
+        current = (rotations[active], translations[active])
+        sides = two_sided[active]
+        d_xy, j, d_yx, i, median = cdw(current, src, tgt, src_tree, tgt_tree, sides)
+        nu = np.maximum(nu0 * median if fixed_nu is None else fixed_nu[active], 1e-12)[:, None]
+        weights = np.concatenate([_welsch_weights(d_xy, nu), _welsch_weights(d_yx, nu) * sides[:, None]], axis=1)
+        p = np.concatenate([np.broadcast_to(src, (len(j), *src.shape)), src[i]], axis=1)
+        q = np.concatenate([tgt[j], np.broadcast_to(tgt, (len(i), *tgt.shape))], axis=1)
+        (new_r, new_t), valid = weighted_procrustes(p, q, weights * scale)
+        new_r[~valid], new_t[~valid] = current[0][~valid], current[1][~valid]
+        moved = np.abs(new_r - current[0]).max(axis=(1, 2)) + np.abs(new_t - current[1]).max(axis=1)
+        rotations[active], translations[active] = new_r, new_t
+        active[np.flatnonzero(active)[moved < tolerance]] = False
+        if merge_distance > 0:
+            gap = np.maximum(
+                np.abs(rotations[:, None] - rotations[None]).max(axis=(2, 3)),
+                np.abs(translations[:, None] - translations[None]).max(axis=2),
+            )
+            duplicate = ((gap < merge_distance) & same_side & earlier & ~merged[None, :]).any(axis=1)
+            merged |= duplicate
+            active &= ~duplicate
+    return (rotations, translations), merged
+
+
+def rodrigues(rotvecs: np.ndarray) -> np.ndarray:
+    """``(K, 3, 3)`` rotation matrices of rotation vectors ``(K, 3)`` (axis times angle)."""
+    angle = np.linalg.norm(rotvecs, axis=1)[:, None, None]
+    k = np.zeros((len(rotvecs), 3, 3))
+    k[:, 0, 1], k[:, 0, 2], k[:, 1, 2] = -rotvecs[:, 2], rotvecs[:, 1], -rotvecs[:, 0]
+    k -= k.transpose(0, 2, 1)
+    small = angle < 1e-8
+    sin = np.where(small, 1.0, np.sin(angle) / np.where(small, 1.0, angle))
+    cos = np.where(small, 0.5, (1.0 - np.cos(angle)) / np.where(small, 1.0, angle) ** 2)
+    return np.eye(3) + sin * k + cos * (k @ k)
+
+
+def cdw_gradient(
+    poses: Poses,
+    src: np.ndarray,
+    tgt: np.ndarray,
+    src_tree: cKDTree,
+    tgt_tree: cKDTree,
+    two_sided: np.ndarray,
+    nu0: float,
+) -> np.ndarray:
+    """Gradient ``(K, 6)`` (rotation, then translation) of CD-W under a left perturbation
+    ``T <- exp(xi) T`` at ``xi = 0``, with ``nu = nu0 * median`` held constant (as the loss detaches it)."""
+    d_xy, j, d_yx, i, median = cdw(poses, src, tgt, src_tree, tgt_tree, two_sided)
+    nu_sq = np.square(np.maximum(nu0 * median, 1e-12))[:, None, None]
+    moved = apply(poses, src)
+    force_xy = (moved - tgt[j]) * _welsch_weights(d_xy, np.sqrt(nu_sq[:, :, 0]))[..., None] / (nu_sq * len(src))
+    matched = np.take_along_axis(moved, i[..., None], axis=1)
+    weights_yx = _welsch_weights(d_yx, np.sqrt(nu_sq[:, :, 0])) * two_sided[:, None]
+    force_yx = (matched - tgt) * weights_yx[..., None] / (nu_sq * len(tgt))
+    rotation = np.cross(moved, force_xy).sum(axis=1) + np.cross(matched, force_yx).sum(axis=1)
+    return np.concatenate([rotation, force_xy.sum(axis=1) + force_yx.sum(axis=1)], axis=1)
+
+
+def cdw_adam(
+    poses: Poses,
+    src: np.ndarray,
+    tgt: np.ndarray,
+    two_sided: np.ndarray,
+    nu0: float,
+    steps: int,
+    lr: float,
+    *,
+    merge_distance: float = 0.0,
+) -> tuple[Poses, np.ndarray]:
+    """Adam on CD-W from every pose at once, in the tangent space of the current pose
+    (``T <- exp(-step) T``, moments kept per pose), with a cosine-decaying learning rate.
+
+    Its fixed-length steps slide across shallow barriers that stop IRLS (an MM method descends
+    into the nearest basin): the coarse stage that finds the basin (docs/registration.md).
+    Arguments and ``merge_distance`` as :func:`cdw_irls`.
+
+    Returns:
+        ``(poses, merged (K,))``.
+    """
+    src_tree, tgt_tree = cKDTree(src), cKDTree(tgt)
+    rotations, translations = (array.copy() for array in poses)
+    count = len(rotations)
+    first, second = np.zeros((count, 6)), np.zeros((count, 6))
+    active = np.ones(count, dtype=bool)
+    merged = np.zeros(count, dtype=bool)
+    same_side = two_sided[:, None] == two_sided[None, :]
+    earlier = np.tri(count, k=-1, dtype=bool)
+    for step in range(steps):
+        if not active.any():
+            break
+        rate = lr * 0.5 * (1.0 + np.cos(np.pi * step / steps))
+        current = (rotations[active], translations[active])
+        grad = cdw_gradient(current, src, tgt, src_tree, tgt_tree, two_sided[active], nu0)
+        first[active] = 0.9 * first[active] + 0.1 * grad
+        second[active] = 0.999 * second[active] + 0.001 * np.square(grad)
+        update = (
+            -rate
+            * (first[active] / (1 - 0.9 ** (step + 1)))
+            / (np.sqrt(second[active] / (1 - 0.999 ** (step + 1))) + 1e-8)
+        )
+        turn = rodrigues(update[:, :3])
+        rotations[active] = turn @ current[0]
+        translations[active] = (turn @ current[1][:, :, None])[:, :, 0] + update[:, 3:]
+        if merge_distance > 0:
+            gap = np.maximum(
+                np.abs(rotations[:, None] - rotations[None]).max(axis=(2, 3)),
+                np.abs(translations[:, None] - translations[None]).max(axis=2),
+            )
+            duplicate = ((gap < merge_distance) & same_side & earlier & ~merged[None, :]).any(axis=1)
+            merged |= duplicate
+            active &= ~duplicate
+    return (rotations, translations), merged
+
+
+def welsch_irls(
+    poses: Poses, src: np.ndarray, tgt_tree: cKDTree, nus: np.ndarray, settle: int = 0, tolerance: float = 1e-6
+) -> Poses:
+    """Robust point-to-point ICP: one Welsch-weighted Procrustes step per scale in ``nus``,
+    matching every source point ``(N, 3)`` to its nearest target point; ``K`` poses at once.
+    Then up to ``settle`` more steps at the last scale, each pose until it moves less than
+    ``tolerance`` (ICP crawls along directions in which the surfaces slide on each other)."""
+    tgt = np.concatenate([tgt_tree.data, np.zeros((1, 3))])  # scipy's index of "none in range": weight 0
+    rotations, translations = (array.copy() for array in poses)
+    active = np.ones(len(rotations), dtype=bool)
+    schedule = list(nus) + [nus[-1]] * settle if len(nus) else []
+    for step, nu in enumerate(schedule):
+        current = (rotations[active], translations[active])
+        distances, idx = tgt_tree.query(apply(current, src), distance_upper_bound=_REACH * nu, workers=1)
+        weights = _welsch_weights(distances, nu)
+        (new_r, new_t), valid = weighted_procrustes(np.broadcast_to(src, (len(idx), *src.shape)), tgt[idx], weights)
+        new_r[~valid], new_t[~valid] = current[0][~valid], current[1][~valid]
+        rotations[active], translations[active] = new_r, new_t
+        if step >= len(nus) - 1:
+            moved = np.abs(new_r - current[0]).max(axis=(1, 2)) + np.abs(new_t - current[1]).max(axis=1)
+            active[np.flatnonzero(active)[moved < tolerance]] = False
+            if not active.any():
+                break
+    return rotations, translations
+
+
+def fixed_scale_cost(poses: Poses, src: np.ndarray, tgt_tree: cKDTree, nu: float) -> np.ndarray:
+    """Welsch cost of every source point's nearest target distance with a FIXED scale ``nu``.
+
+    ``mean_i 1 - exp(-d_i^2 / 2 nu^2)``: 0 when every source point lies on the target, 1 when
+    none is near it. Unlike the paper's median-scaled metrics its value compares poses.
+
+    Returns:
+        ``(K,)`` costs in ``[0, 1]``.
+    """
+    distances, _ = tgt_tree.query(apply(poses, src), distance_upper_bound=_REACH * nu, workers=1)
+    return welsch_cost(distances, nu)
+
+
+def cube_rotations() -> np.ndarray:
+    """The 24 rotations of the cube (signed axis permutations with determinant +1), the
+    identity first, as ``(24, 3, 3)`` float64 matrices."""
+    rotations = [np.eye(3)]
+    for permutation in itertools.permutations(range(3)):
+        for signs in itertools.product((1.0, -1.0), repeat=3):
+            matrix = np.zeros((3, 3))
+            matrix[range(3), permutation] = signs
+            if np.linalg.det(matrix) > 0 and not np.allclose(matrix, np.eye(3)):
+                rotations.append(matrix)
+    return np.stack(rotations)
+
+
+def axis_rotations(count: int, angle_deg: float = 90.0) -> np.ndarray:
+    """The identity, then rotations by ``angle_deg`` about +x, +y, +z, -x, -y, -z (the first
+    ``count``, 1..7): the first-round starts, as ``(count, 3, 3)`` matrices."""
+    if not 1 <= count <= 7:
+        raise ValueError(f"starts must be in 1..7 (identity and +-angle about 3 axes), got {count}")
+    angle = np.deg2rad(angle_deg)
+    out = [np.eye(3)]
+    for sign, axis in itertools.product((1.0, -1.0), range(3)):
+        k = np.zeros((3, 3))
+        a, b = (axis + 1) % 3, (axis + 2) % 3
+        k[b, a], k[a, b] = sign, -sign
+        out.append(np.eye(3) + np.sin(angle) * k + (1.0 - np.cos(angle)) * (k @ k))
+    return np.stack(out[:count])
+
+
+def rotation_gap_deg(rotations: np.ndarray, reference: np.ndarray) -> np.ndarray:
+    """Angles (degrees) between each of ``rotations (K, 3, 3)`` and ``reference (3, 3)``."""
+    cos = (np.einsum("kij,ij->k", rotations, reference) - 1.0) / 2.0
+    return np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
+
+
+def point_spacing(points: np.ndarray, tree: cKDTree | None = None) -> float:
+    """Median distance of a point of ``points (N, 3)`` to its nearest other point."""
+    distances, _ = (tree or cKDTree(points)).query(points, k=2, workers=1)
+    return float(np.median(distances[:, 1]))
+
+
+def alignment_quality(src: np.ndarray, tgt: np.ndarray, transform: np.ndarray, threshold: float) -> dict[str, float]:
+    """Open3D's registration quality of ``transform (4, 4)`` mapping ``src (N, 3)`` onto ``tgt (M, 3)``.
+
+    Returns:
+        ``fitness`` (fraction of source points with a target point within ``threshold``) and
+        ``inlier_rmse`` (RMS distance of those points; 0 when there are none).
+    """
+    moved = np.asarray(src, dtype=np.float64) @ transform[:3, :3].T + transform[:3, 3]
+    distances, _ = cKDTree(np.asarray(tgt, dtype=np.float64)).query(moved, workers=1)
+    inliers = distances <= threshold
+    rmse = float(np.sqrt(np.square(distances[inliers]).mean())) if inliers.any() else 0.0
+    return {"fitness": float(inliers.mean()), "inlier_rmse": rmse}
+
+
+def degeneracy(points: np.ndarray, name: str) -> str | None:
+    """``None`` for a cloud spread in 2 or 3 directions; a warning for a collinear one.
+
+    Raises:
+        ValueError: all points coincide (no direction at all), naming the cloud.
+    """
+    centred = np.asarray(points, dtype=np.float64) - np.mean(points, axis=0)
+    singular = np.linalg.svd(centred, compute_uv=False)
+    scale = max(float(np.abs(points).max()), 1e-300)
+    if singular[0] <= 1e-9 * scale * np.sqrt(len(points)):
+        raise ValueError(f"{name}: all {len(points)} points coincide; no rotation can be determined")
+    if singular[1] <= 1e-6 * singular[0]:
+        return f"{name}: the {len(points)} points are collinear; the rotation about their line is arbitrary"
+    return None
+
+
+@dataclass(frozen=True)
+class RobustOptions:
+    """Settings of :class:`RobustRegistration` (lengths in the unit ball of the centred pair).
+
+    Attributes:
+        starts: initial rotations of the first two rounds (:func:`axis_rotations`).
+        coarse_points: FPS size of the source in the coarse stage (the target gets twice).
+        coarse_sides: every start runs once per entry: ``"both"`` (CD-W, both directions) and/or
+            ``"source"`` (the source-to-target term alone: a partial view inside a whole target).
+        coarse_nu0: CD-W's ``nu0`` (a wide window: robust to partial overlap).
+        coarse_steps: most IRLS steps of CD-W from every start in the first round (:func:`cdw_irls`).
+        explore_steps: Adam steps of CD-W from every start in the later rounds (:func:`cdw_adam`).
+        explore_lr: peak learning rate (cosine decay) of those Adam steps.
+        merge_distance: coarse candidates this close (rotation entries and translation) to an
+            earlier one with the same coarse loss stop and are not polished.
+        polish_steps: Welsch IRLS steps from every coarse result with :func:`polish_scales`.
+        polish_nu: first IRLS scale.
+        polish_end: last IRLS scale, times the target's median point spacing.
+        polish_settle: most further IRLS steps at the last scale, each candidate until it stops moving.
+        select_nu: scale of the selection cost :func:`fixed_scale_cost`.
+        doubt_ratio: the pose is doubtful when another candidate more than ``distinct_deg``
+            away costs less than this factor times the best cost, or the best cost exceeds
+            ``max_cost``, or fewer than ``min_fitness`` of the source points lie within
+            ``fitness_spacings`` target point spacings of the target. A doubtful pose sends the
+            solver to the next round: 2, Adam from the same starts; 3, Adam from the 24 cube
+            rotations with ``escalate_factor`` times the steps (``rounds`` caps them).
+        distinct_deg: rotation gap between two candidates that count as different basins.
+        max_cost: selection cost above which the fit itself is doubtful.
+        min_fitness: fitness below which the fit is doubtful (a right pose of a view inside the
+            whole target scores 0.99-1, a wrong basin 0.7-0.87: docs/registration.md).
+        fitness_spacings: inlier distance of that fitness, in target point spacings.
+        escalate_factor: Adam steps multiplier of the third round.
+        rounds: most rounds (1..3).
+    """
+
+    starts: int = 4
+    coarse_points: int = 256
+    coarse_sides: tuple[str, ...] = ("both", "source")
+    coarse_nu0: float = 2.0
+    coarse_steps: int = 80
+    explore_steps: int = 100
+    explore_lr: float = 0.03
+    merge_distance: float = 0.01
+    polish_steps: int = 20
+    polish_nu: float = 0.05
+    polish_end: float = 0.3
+    polish_settle: int = 60
+    select_nu: float = 0.03
+    doubt_ratio: float = 1.25
+    distinct_deg: float = 10.0
+    max_cost: float = 0.5
+    min_fitness: float = 0.985
+    fitness_spacings: float = 3.0
+    escalate_factor: int = 2
+    rounds: int = 3
+
+    def __post_init__(self) -> None:
+        positive = (
+            "coarse_points",
+            "coarse_nu0",
+            "explore_lr",
+            "polish_nu",
+            "polish_end",
+            "select_nu",
+            "distinct_deg",
+            "max_cost",
+            "fitness_spacings",
+        )
+        for name in positive:
+            if not getattr(self, name) > 0:
+                raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
+        for name in ("coarse_steps", "explore_steps", "polish_steps", "polish_settle", "merge_distance"):
+            if getattr(self, name) < 0:
+                raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
+        if not 0 <= self.min_fitness <= 1:
+            raise ValueError(f"min_fitness must be in [0, 1], got {self.min_fitness}")
+        if self.doubt_ratio < 1:
+            raise ValueError(f"doubt_ratio must be >= 1, got {self.doubt_ratio}")
+        if self.escalate_factor < 1:
+            raise ValueError(f"escalate_factor must be >= 1, got {self.escalate_factor}")
+        if self.rounds not in (1, 2, 3):
+            raise ValueError(f"rounds must be 1, 2 or 3, got {self.rounds}")
+        sides = tuple(self.coarse_sides)
+        if not sides or set(sides) - {"both", "source"} or len(set(sides)) < len(sides):
+            raise ValueError(f"coarse_sides must be distinct entries of 'both' and 'source', got {self.coarse_sides!r}")
+        object.__setattr__(self, "coarse_sides", sides)
+        axis_rotations(self.starts)
+
+
+def options_from(options: RobustOptions | Mapping[str, Any] | None, kind: type = RobustOptions):
+    """``options`` as a ``kind`` dataclass; a mapping with an unknown field is a ``TypeError`` naming it."""
+    if options is None:
+        return kind()
+    if isinstance(options, kind):
+        return options
+    known = {f.name for f in fields(kind)}
+    unknown = set(options) - known
+    if unknown:
+        raise TypeError(f"unknown option(s) {sorted(unknown)}; known: {sorted(known)}")
+    return kind(**options)
+
+
+def polish_scales(options: Any, spacing: float) -> np.ndarray:
+    """Welsch scales of the IRLS polish: ``polish_steps`` values falling geometrically from
+    ``polish_nu`` to ``polish_end`` times the target's point ``spacing`` over the first half,
+    then held (the last steps settle at the fine scale)."""
+    if options.polish_steps == 0:
+        return np.zeros(0)
+    fine = min(options.polish_end * spacing, options.polish_nu)
+    falling = np.geomspace(options.polish_nu, fine, max((options.polish_steps + 1) // 2, 1))
+    return np.concatenate([falling, np.full(options.polish_steps - len(falling), fine)])[: options.polish_steps]
+
+
+class RobustRegistration:
+    """The ``register`` default (numpy/scipy): multi-start IRLS on CD-W, Welsch IRLS polish,
+    fixed-scale selection, Adam rounds when doubtful (module docstring).
+
+    The result's ``info`` holds ``fitness`` and ``inlier_rmse`` (Open3D's definitions, within
+    ``fitness_threshold`` in input units; default 3 times the target's median point spacing),
+    ``converged`` (the final choice is not doubtful), ``confidence`` (``1 - best cost / cost of
+    the best distinct basin``; 1 without a rival), ``rounds``, ``starts`` (coarse candidates of
+    all rounds: starts x coarse sides), ``candidates`` (those polished: not merged), the
+    selection ``cost``, and ``warnings`` (collinear clouds).
+
+    Args:
+        options: :class:`RobustOptions` or a mapping of its fields.
+        num_points: FPS size of each cloud for the polish and the selection.
+        device: ``"cpu"`` only (this solver is numpy); ``robust_adam`` runs on torch devices.
+        fitness_threshold: inlier distance of ``fitness`` / ``inlier_rmse`` in input units.
+        center: register centred clouds.
+    """
+
+    def __init__(
+        self,
+        options: RobustOptions | Mapping[str, Any] | None = None,
+        num_points: int | None = 2048,
+        device: str = "cpu",
+        fitness_threshold: float | None = None,
+        center: bool = True,
+    ) -> None:
+        if str(device) != "cpu":
+            raise ValueError(
+                f"device={device!r}: the robust solver runs on the CPU (numpy); "
+                "method=robust_adam runs the torch version on any device"
+            )
+        if num_points is not None and num_points < 3:
+            raise ValueError(f"num_points must be >= 3 or None, got {num_points}")
+        if fitness_threshold is not None and not fitness_threshold > 0:
+            raise ValueError(f"fitness_threshold must be > 0 or None, got {fitness_threshold}")
+        self.options = options_from(options)
+        self.num_points = num_points
+        self.fitness_threshold = fitness_threshold
+        self.center = center
+
+    def __call__(self, src, tgt, src_normals=None, tgt_normals=None, *, init: np.ndarray | None = None) -> MethodResult:
+        """Register ``src (N, 3)`` onto ``tgt (M, 3)``; ``init (4, 4)`` is an initial guess applied
+        to the source first (the multi-start then explores around it)."""
+        check_points(src, "source", batched=False)
+        check_points(tgt, "target", batched=False)
+        notes = [note for note in (degeneracy(src, "source"), degeneracy(tgt, "target")) if note is not None]
+        for note in notes:
+            warnings.warn(note, stacklevel=2)
+        src = np.asarray(src, dtype=np.float64)
+        tgt = np.asarray(tgt, dtype=np.float64)
+        if init is not None:
+            init = np.asarray(init, dtype=np.float64)
+            check_transform(init, "init")
+            src = src @ init[:3, :3].T + init[:3, 3]
+        result = run_centered(self._solve, src, tgt, center=self.center)
+        tgt_fit = fps(tgt, self.num_points)
+        threshold = self.fitness_threshold or 3.0 * point_spacing(tgt_fit)
+        quality = alignment_quality(fps(src, self.num_points), tgt_fit, result.transform, threshold)
+        transform = result.transform if init is None else result.transform @ init
+        info = {**result.info, **quality, "fitness_threshold": threshold, "warnings": notes}
+        return MethodResult(transform=transform, seconds=result.seconds, info=info)
+
+    def _round(self, number: int, src, tgt_tree, src_coarse, tgt_coarse, nus):
+        """Round ``number`` (1, 2, 3): coarse stage from its starts, then the polish: candidates,
+        their costs ``(K,)`` and the number of coarse candidates."""
+        options = self.options
+        starts = cube_rotations() if number == 3 else axis_rotations(options.starts)
+        sides = np.repeat([side == "both" for side in options.coarse_sides], len(starts))
+        rotations = np.tile(starts, (len(options.coarse_sides), 1, 1))
+        initial = (rotations, np.zeros((len(rotations), 3)))
+        if number == 1:
+            poses, merged = cdw_irls(
+                initial,
+                src_coarse,
+                tgt_coarse,
+                sides,
+                options.coarse_nu0,
+                options.coarse_steps,
+                merge_distance=options.merge_distance,
+            )
+        else:
+            steps = options.explore_steps * (options.escalate_factor if number == 3 else 1)
+            poses, merged = cdw_adam(
+                initial,
+                src_coarse,
+                tgt_coarse,
+                sides,
+                options.coarse_nu0,
+                steps,
+                options.explore_lr,
+                merge_distance=options.merge_distance,
+            )
+        poses = welsch_irls((poses[0][~merged], poses[1][~merged]), src, tgt_tree, nus, options.polish_settle)
+        return poses, fixed_scale_cost(poses, src, tgt_tree, options.select_nu), len(sides)
+
+    def _doubt(self, poses: Poses, costs: np.ndarray, src, tgt_tree, inlier_distance) -> tuple[bool, float]:
+        """``(doubtful, confidence)`` of the lowest-cost candidate (see :class:`RobustOptions`)."""
+        options = self.options
+        best = int(costs.argmin())
+        distances, _ = tgt_tree.query(apply((poses[0][best : best + 1], poses[1][best : best + 1]), src)[0], workers=1)
+        fitness = float((distances <= inlier_distance).mean())
+        poor = float(costs[best]) > options.max_cost or fitness < options.min_fitness
+        rivals = rotation_gap_deg(poses[0], poses[0][best]) > options.distinct_deg
+        if not rivals.any():
+            return poor, 1.0
+        rival = float(costs[rivals].min())
+        return poor or rival < options.doubt_ratio * float(costs[best]), 1.0 - float(costs[best]) / max(rival, 1e-12)
+
+    def _solve(self, src, tgt, src_normals, tgt_normals) -> MethodResult:
+        options = self.options
+        src_s, tgt_s = fps(src, self.num_points), fps(tgt, self.num_points)
+        radius = float(max(np.linalg.norm(src_s, axis=1).max(), np.linalg.norm(tgt_s, axis=1).max(), 1e-12))
+        src_s, tgt_s = src_s / radius, tgt_s / radius
+        src_coarse, tgt_coarse = fps(src_s, options.coarse_points), fps(tgt_s, 2 * options.coarse_points)
+        tgt_tree = cKDTree(tgt_s)
+        spacing = point_spacing(tgt_s, tgt_tree)
+        nus = polish_scales(options, spacing)
+        inlier_distance = options.fitness_spacings * spacing
+        poses, costs, starts = self._round(1, src_s, tgt_tree, src_coarse, tgt_coarse, nus)
+        doubtful, confidence = self._doubt(poses, costs, src_s, tgt_tree, inlier_distance)
+        rounds = 1
+        while doubtful and rounds < options.rounds:
+            rounds += 1
+            more, more_costs, more_starts = self._round(rounds, src_s, tgt_tree, src_coarse, tgt_coarse, nus)
+            poses = tuple(np.concatenate([a, b]) for a, b in zip(poses, more, strict=True))
+            costs, starts = np.concatenate([costs, more_costs]), starts + more_starts
+            doubtful, confidence = self._doubt(poses, costs, src_s, tgt_tree, inlier_distance)
+        best = int(costs.argmin())
+        transform = as_matrices((poses[0][best : best + 1], poses[1][best : best + 1]))[0]
+        transform[:3, 3] *= radius
+        info = {
+            "converged": not doubtful,
+            "confidence": confidence,
+            "cost": float(costs[best]),
+            "rounds": rounds,
+            "starts": starts,
+            "candidates": len(costs),
+        }
+        return MethodResult(transform=transform, info=info)
+
+
+METHODS.register("robust")(RobustRegistration)

@@ -1,0 +1,260 @@
+"""The ``register`` default, :class:`linereg.registration.robust.RobustRegistration` (numpy), and its parts."""
+
+from __future__ import annotations
+
+import math
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+import torch
+from scipy.spatial import cKDTree
+
+from linereg.losses.chamfer import chamfer_welsch_distance
+from linereg.paths import REPO_ROOT
+from linereg.procrustes import weighted_procrustes as torch_procrustes
+from linereg.registration import METHODS
+from linereg.registration.robust import (
+    RobustOptions,
+    alignment_quality,
+    axis_rotations,
+    cdw_adam,
+    cdw_gradient,
+    cdw_irls,
+    cdw_value,
+    cube_rotations,
+    degeneracy,
+    fixed_scale_cost,
+    polish_scales,
+    rodrigues,
+    rotation_gap_deg,
+    weighted_procrustes,
+    welsch_irls,
+)
+from linereg.registration.solvers import start_poses
+from linereg.se3 import euler_to_rotmat, rt_to_matrix, se3_exp
+
+
+def surface(n: int, seed: int) -> np.ndarray:
+    """Samples of an asymmetric bumpy ellipsoid (float64, unit scale)."""
+    rng = np.random.default_rng(seed)
+    x = rng.normal(size=(n, 3))
+    x /= np.linalg.norm(x, axis=1, keepdims=True)
+    bump = 1.0 + 0.25 * np.sin(3.0 * x[:, 0]) * np.cos(2.0 * x[:, 1])
+    return x * bump[:, None] * np.array([1.4, 1.0, 0.7])
+
+
+def pose(angles_deg, t) -> np.ndarray:
+    R = euler_to_rotmat(torch.tensor(angles_deg, dtype=torch.float64) * math.pi / 180)
+    return rt_to_matrix(R, torch.tensor(t, dtype=torch.float64)).numpy()
+
+
+def apply(T: np.ndarray, x: np.ndarray) -> np.ndarray:
+    return x @ T[:3, :3].T + T[:3, 3]
+
+
+def error_deg(T: np.ndarray, truth: np.ndarray) -> float:
+    return float(rotation_gap_deg(T[None, :3, :3], truth[:3, :3])[0])
+
+
+def as_poses(transforms: np.ndarray):
+    return transforms[:, :3, :3].copy(), transforms[:, :3, 3].copy()
+
+
+def test_weighted_procrustes_matches_the_torch_solver_and_flags_zero_weights():
+    rng = np.random.default_rng(0)
+    p = rng.normal(size=(3, 50, 3))
+    q = p @ pose([20, -40, 70], [0.3, 0.1, -0.2])[:3, :3].T + rng.normal(scale=0.05, size=p.shape)
+    w = rng.uniform(size=(3, 50))
+    w[2] = 0.0
+    (rotations, translations), valid = weighted_procrustes(p, q, w)
+    expected = torch_procrustes(*(torch.from_numpy(a) for a in (p[:2], q[:2], w[:2]))).transform.numpy()
+    np.testing.assert_allclose(rotations[:2], expected[:, :3, :3], atol=1e-9)
+    np.testing.assert_allclose(translations[:2], expected[:, :3, 3], atol=1e-9)
+    assert valid.tolist() == [True, True, False]
+    np.testing.assert_array_equal(rotations[2], np.eye(3))
+
+
+def test_the_irls_coarse_stage_decreases_cdw_monotonically_at_a_fixed_scale():
+    """An MM step: with the scale held, no IRLS step of CD-W can increase it, both-sided or not."""
+    whole = surface(600, 1)
+    src = whole[whole[:, 0] > -0.2][:250]
+    tgt = apply(pose([25, -20, 15], [0.1, 0.05, 0.0]), surface(500, 2))
+    starts = as_poses(np.stack([np.eye(4), pose([0, 90, 0], [0, 0, 0])] * 2))
+    sides = np.array([True, True, False, False])
+    nu = np.full(4, 0.15)
+    values = [cdw_value(starts, src, tgt, nu, sides)]
+    poses = starts
+    for _ in range(15):
+        poses, _ = cdw_irls(poses, src, tgt, sides, 2.0, 1, fixed_nu=nu, tolerance=0.0)
+        values.append(cdw_value(poses, src, tgt, nu, sides))
+    steps = np.diff(np.stack(values), axis=0)
+    assert (steps <= 1e-12).all(), steps.max()
+    assert (values[-1] < values[0] - 1e-3).all()
+
+
+def test_the_cdw_gradient_is_autograd_of_the_loss_under_a_left_perturbation():
+    src, tgt = surface(120, 3), apply(pose([10, 5, -8], [0.05, 0.0, 0.02]), surface(150, 4))
+    start = pose([3, -4, 2], [0.01, 0.02, 0.0])
+    gradient = cdw_gradient(as_poses(start[None]), src, tgt, cKDTree(src), cKDTree(tgt), np.array([True]), 2.0)[0]
+    xi = torch.zeros(6, dtype=torch.float64, requires_grad=True)
+    moved = (torch.from_numpy(src) @ torch.from_numpy(start[:3, :3]).T + torch.from_numpy(start[:3, 3]))[None]
+    transform = se3_exp(xi[None])[0]
+    loss = chamfer_welsch_distance(moved @ transform[:3, :3].T + transform[:3, 3], torch.from_numpy(tgt)[None], nu0=2.0)
+    loss.sum().backward()
+    np.testing.assert_allclose(gradient, xi.grad.numpy(), rtol=1e-6, atol=1e-9)
+
+
+def test_rodrigues_and_axis_rotations_match_the_torch_helpers():
+    rotvecs = np.array([[0.0, 0.0, 0.0], [0.3, -0.2, 0.9], [1e-10, 0.0, 0.0]])
+    expected = se3_exp(torch.from_numpy(np.concatenate([rotvecs, np.zeros((3, 3))], axis=1)))[:, :3, :3]
+    np.testing.assert_allclose(rodrigues(rotvecs), expected.numpy(), atol=1e-12)
+    np.testing.assert_allclose(axis_rotations(7), start_poses(7)[:, :3, :3].numpy(), atol=1e-12)
+    with pytest.raises(ValueError, match=r"starts must be in 1\.\.7"):
+        axis_rotations(8)
+
+
+@pytest.mark.parametrize("coarse", ["irls", "adam"])
+def test_coinciding_coarse_candidates_merge(coarse):
+    src, tgt = surface(200, 5), apply(pose([5, 0, 0], [0, 0, 0]), surface(300, 6))
+    starts = as_poses(np.stack([np.eye(4), pose([1, 0, 0], [0, 0, 0]), pose([0, 0, 120], [0, 0, 0])]))
+    sides = np.ones(3, dtype=bool)
+    if coarse == "irls":
+        _, merged = cdw_irls(starts, src, tgt, sides, 2.0, 40, merge_distance=0.01)
+    else:
+        _, merged = cdw_adam(starts, src, tgt, sides, 2.0, 100, 0.03, merge_distance=0.01)
+    assert merged.tolist() == [False, True, False]
+
+
+def test_welsch_irls_recovers_a_pose_from_exact_correspondences():
+    src = surface(400, 2)
+    truth = pose([8, -5, 4], [0.05, 0.02, -0.03])
+    tgt = apply(truth, src)
+    found = welsch_irls(as_poses(np.eye(4)[None]), src, cKDTree(tgt), [0.3] * 5 + [0.05] * 15)
+    assert rotation_gap_deg(found[0], truth[:3, :3])[0] < 1e-3
+    np.testing.assert_allclose(found[1][0], truth[:3, 3], atol=1e-5)
+
+
+def test_fixed_scale_cost_is_lowest_at_the_true_pose_and_matches_its_definition():
+    src = surface(300, 3)
+    truth = pose([30, 10, -20], [0.1, 0.0, 0.0])
+    tgt = apply(truth, surface(300, 3))
+    poses = np.stack([truth, np.eye(4), pose([0, 180, 0], [0, 0, 0]) @ truth])
+    costs = fixed_scale_cost(as_poses(poses), src, cKDTree(tgt), 0.05)
+    assert int(costs.argmin()) == 0 and costs[0] < 1e-6
+    nearest = np.linalg.norm(src[:, None] - tgt[None], axis=2).min(axis=1)
+    assert costs[1] == pytest.approx((1 - np.exp(-(nearest**2) / (2 * 0.05**2))).mean())
+
+
+def test_alignment_quality_counts_inliers_as_open3d_does():
+    src = np.array([[0.0, 0, 0], [1, 0, 0], [5, 0, 0]])
+    tgt = np.array([[0.0, 0.1, 0], [1, 0, 0.2]])
+    quality = alignment_quality(src, tgt, np.eye(4), threshold=0.15)
+    assert quality["fitness"] == pytest.approx(1 / 3)
+    assert quality["inlier_rmse"] == pytest.approx(0.1)
+    assert alignment_quality(src, tgt, np.eye(4), threshold=0.01) == {"fitness": 0.0, "inlier_rmse": 0.0}
+
+
+def test_cube_rotations_are_24_distinct_proper_rotations():
+    rotations = cube_rotations()
+    assert rotations.shape == (24, 3, 3)
+    np.testing.assert_allclose(rotations[0], np.eye(3))
+    np.testing.assert_allclose(np.linalg.det(rotations), np.ones(24))
+    gaps = [rotation_gap_deg(np.delete(rotations, k, axis=0), rotations[k]).min() for k in range(24)]
+    assert min(gaps) > 90 - 1e-6
+
+
+def test_degeneracy():
+    assert degeneracy(surface(50, 0), "source") is None
+    assert "collinear" in degeneracy(np.outer(np.arange(6.0), [1, 2, 3]), "source")
+    with pytest.raises(ValueError, match="target: all 7 points coincide"):
+        degeneracy(np.full((7, 3), 2.5), "target")
+
+
+def test_polish_scales_fall_then_hold():
+    options = RobustOptions(polish_steps=6, polish_nu=0.08, polish_end=0.5)
+    scales = polish_scales(options, spacing=0.02)
+    np.testing.assert_allclose(scales, [0.08, math.sqrt(0.08 * 0.01), 0.01, 0.01, 0.01, 0.01])
+    assert len(polish_scales(RobustOptions(polish_steps=0), 0.02)) == 0
+
+
+def test_options_are_checked():
+    with pytest.raises(ValueError, match="coarse_points must be > 0"):
+        RobustOptions(coarse_points=0)
+    with pytest.raises(ValueError, match="rounds must be 1, 2 or 3"):
+        RobustOptions(rounds=4)
+    with pytest.raises(ValueError, match="min_fitness must be in"):
+        RobustOptions(min_fitness=1.5)
+    with pytest.raises(ValueError, match="coarse_sides must be"):
+        RobustOptions(coarse_sides=("both", "target"))
+    assert RobustOptions(coarse_sides=["source"]).coarse_sides == ("source",)
+    with pytest.raises(TypeError, match="unknown option"):
+        METHODS.build({"name": "robust", "options": {"startz": 3}})
+    with pytest.raises(ValueError, match=r"device=.cuda.*robust_adam"):
+        METHODS.build({"name": "robust", "device": "cuda"})
+
+
+@pytest.fixture(scope="module")
+def partial_pair():
+    """A partial source (700 points with x > -0.3) against the whole, moved surface (3000 points)."""
+    whole = surface(3000, 7)
+    truth = pose([40, -30, 25], [0.2, -0.1, 0.15])
+    return whole[whole[:, 0] > -0.3][:700], apply(truth, whole), truth
+
+
+def test_robust_registration_recovers_a_partial_view_and_reports_its_quality(partial_pair):
+    src, tgt, truth = partial_pair
+    result = METHODS.build({"name": "robust", "num_points": 1024})(src, tgt)
+    assert error_deg(result.transform, truth) < 0.5
+    info = result.info
+    assert info["fitness"] > 0.95 and 0 < info["inlier_rmse"] < info["fitness_threshold"]
+    assert info["converged"] is True and info["confidence"] > 0.2 and info["rounds"] == 1
+    assert info["starts"] == 4 * 2 and 1 <= info["candidates"] <= 8 and info["warnings"] == []
+
+
+def test_a_doubtful_pose_gets_the_later_rounds(partial_pair):
+    src, tgt, truth = partial_pair
+    result = METHODS.build({"name": "robust", "num_points": 512, "options": {"max_cost": 1e-6}})(src, tgt)
+    assert result.info["rounds"] == 3 and result.info["starts"] == 2 * (4 + 4 + 24)
+    assert result.info["converged"] is False
+    assert error_deg(result.transform, truth) < 1.0
+    capped = METHODS.build({"name": "robust", "num_points": 512, "options": {"max_cost": 1e-6, "rounds": 1}})
+    assert capped(src, tgt).info["rounds"] == 1
+
+
+def test_init_is_applied_to_the_source_first(partial_pair):
+    src, tgt, truth = partial_pair
+    flip = pose([180, 0, 0], [0, 0, 0])
+    single = {"name": "robust", "num_points": 512, "options": {"starts": 1}}
+    result = METHODS.build(single)(apply(np.linalg.inv(flip), src), tgt, init=flip)
+    assert error_deg(result.transform @ np.linalg.inv(flip), truth) < 0.5
+
+
+def test_results_are_deterministic(partial_pair):
+    src, tgt, _ = partial_pair
+    method = METHODS.build({"name": "robust", "num_points": 512})
+    np.testing.assert_array_equal(method(src, tgt).transform, method(src, tgt).transform)
+
+
+def test_degenerate_clouds_warn_or_fail():
+    line = np.outer(np.linspace(-1, 1, 50), [1.0, 0.5, 0.2])
+    with pytest.warns(UserWarning, match="source: the 50 points are collinear"):
+        METHODS.build({"name": "robust", "options": {"rounds": 1}})(line, surface(200, 1))
+    with pytest.raises(ValueError, match="target: all 9 points coincide"):
+        METHODS.build({"name": "robust"})(surface(50, 1), np.ones((9, 3)))
+
+
+def test_the_default_path_does_not_import_torch():
+    """``linereg.register`` with the default method, and the command's module, run without torch."""
+    code = (
+        "import sys, numpy as np\n"
+        "import linereg, linereg.train.register\n"
+        "rng = np.random.default_rng(0)\n"
+        "x = rng.normal(size=(300, 3)) * [1.4, 1.0, 0.6]\n"
+        "result = linereg.register(x, x + 0.1)\n"
+        "assert result.fitness > 0.9, result\n"
+        "loaded = [m for m in ('torch', 'open3d', 'numba', 'matplotlib') if m in sys.modules]\n"
+        "assert not loaded, loaded\n"
+    )
+    subprocess.run([sys.executable, "-c", code], cwd=REPO_ROOT, check=True, timeout=300)

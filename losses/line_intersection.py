@@ -338,7 +338,8 @@ def _stacked_points(clouds: list[torch.Tensor], lengths: np.ndarray) -> np.ndarr
 def _numba_plan(
     clouds: list[torch.Tensor], valids: list[torch.Tensor], radii, neighbors, lines: LineBatch, options
 ) -> KernelPlan:
-    """Intersections of the lines with every cloud of both sides, one kernel call for all.
+    """Intersections of the lines with every cloud of both sides, one kernel call for all (each
+    sample's lines walk one grid holding both of its clouds).
 
     Args:
         clouds: per side, ``(B, N_side, 3)`` float64 CPU points (detached).
@@ -348,30 +349,30 @@ def _numba_plan(
     mode = INTERSECTIONS[options.intersection]
     origins = lines.origins.cpu().numpy()
     dirs = lines.dirs.cpu().numpy()
-    line_o, line_d, line_ids, points, radius, nbrs, cells = [], [], [], [], [], [], []
-    for cloud, valid, rad, nbr in zip(clouds, valids, radii, neighbors, strict=True):
-        lengths = valid.sum(dim=1).tolist()
+    counts = [int(c) for c in lines.counts]
+    lengths = [valid.sum(dim=1).tolist() for valid in valids]
+    points, radius, nbrs = [], [], []
+    for cloud, rad, nbr, side_lengths in zip(clouds, radii, neighbors, lengths, strict=True):
         for b in range(batch):
-            coords = cloud[b, : lengths[b]].numpy()
-            r = rad[b, : lengths[b]].numpy()
-            count = int(lines.counts[b])
-            line_o.append(origins[b, :count])
-            line_d.append(dirs[b, :count])
-            line_ids.append(b * n_lines + np.arange(count))
-            points.append(coords)
-            radius.append(r)
-            local = nbr[b, : lengths[b]].numpy()
+            points.append(cloud[b, : side_lengths[b]].numpy())
+            radius.append(rad[b, : side_lengths[b]].numpy())
+            local = nbr[b, : side_lengths[b]].numpy()
             nbrs.append(local if mode != line_kernels.MODE_CANDIDATES else local[:, :0])
-            cells.append(line_kernels.grid_cell_size(coords, r, options.cell_factor))
-    line_offsets = np.concatenate([[0], np.cumsum([len(o) for o in line_o])])
+    cells = []
+    for b in range(batch):
+        sample_points = np.concatenate([points[b], points[batch + b]])
+        sample_radius = np.concatenate([radius[b], radius[batch + b]])
+        n_points = (lengths[0][b] + lengths[1][b]) / 2
+        cells.append(line_kernels.grid_cell_size(sample_points, sample_radius, options.cell_factor, n_points))
+    sample_line_offsets = np.concatenate([[0], np.cumsum(counts)])
     point_offsets = np.concatenate([[0], np.cumsum([len(p) for p in points])])
     threads = numba.get_num_threads()
-    chunk = int(np.clip(line_offsets[-1] // (8 * threads), 64, 1024))
+    chunk = int(np.clip(sample_line_offsets[-1] // (4 * threads), 64, 1024))
     stacked_neighbors = np.ascontiguousarray(np.concatenate(nbrs))
     offsets, anchors, weights = line_kernels.line_intersections(
-        np.concatenate(line_o),
-        np.concatenate(line_d),
-        line_offsets,
+        np.concatenate([origins[b, : counts[b]] for b in range(batch)]),
+        np.concatenate([dirs[b, : counts[b]] for b in range(batch)]),
+        sample_line_offsets,
         np.concatenate(points),
         point_offsets,
         np.concatenate(radius),
@@ -381,8 +382,15 @@ def _numba_plan(
         np.array(cells),
         chunk,
     )
+    line_ids = np.concatenate([b * n_lines + np.arange(counts[b]) for b in range(batch)])
     return KernelPlan(
-        offsets, anchors, weights, line_offsets, np.concatenate(line_ids), point_offsets, stacked_neighbors
+        offsets,
+        anchors,
+        weights,
+        np.concatenate([[0], np.cumsum(counts + counts)]),
+        np.concatenate([line_ids, line_ids]),
+        point_offsets,
+        stacked_neighbors,
     )
 
 

@@ -285,26 +285,37 @@ def _cylinder_radius(
 
 
 def _neighbors(
-    cloud: torch.Tensor, lengths: torch.Tensor, k: int, backend: str
-) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """``valid (B, N)``, ``neighbors (B, N, k)`` (sample-local) and their ``distances (B, N, k)``:
-    a grid search per sample for ``numba`` (:func:`linereg.losses.line_kernels.nearest_neighbors`), a
-    masked brute-force search for ``torch``; rows of padding points are zero for ``numba``."""
-    batch, n = cloud.shape[:2]
-    valid = torch.arange(n, device=cloud.device)[None] < lengths.to(cloud.device)[:, None]
+    clouds: list[torch.Tensor], lengths: list[torch.Tensor], k: int, backend: str
+) -> list[tuple[torch.Tensor, torch.Tensor, torch.Tensor]]:
+    """Per side, ``valid (B, N)``, ``neighbors (B, N, k)`` (sample-local) and their
+    ``distances (B, N, k)`` of ``clouds[side] (B, N, 3)`` with ``lengths[side] (B,)`` valid points:
+    a grid search per cloud for ``numba`` (:func:`linereg.losses.line_kernels.nearest_neighbors`,
+    one call for every cloud of both sides), a masked brute-force search for ``torch``; rows of
+    padding points are zero for ``numba``."""
+    valids = [
+        torch.arange(cloud.shape[1], device=cloud.device)[None] < side_lengths.to(cloud.device)[:, None]
+        for cloud, side_lengths in zip(clouds, lengths, strict=True)
+    ]
     if backend == "torch":
-        idx, dist = line_torch.masked_knn(cloud, valid, k)
-        return valid, idx, dist
-    counts = lengths.tolist()
+        return [(valid, *line_torch.masked_knn(cloud, valid, k)) for cloud, valid in zip(clouds, valids, strict=True)]
+    counts = [c for side_lengths in lengths for c in side_lengths.tolist()]
     offsets = np.concatenate([[0], np.cumsum(counts)])
-    stacked = cloud[valid].numpy() if sum(counts) < batch * n else cloud.reshape(-1, 3).numpy()
+    stacked = np.concatenate([cloud[valid].numpy() for cloud, valid in zip(clouds, valids, strict=True)])
     found, found_dist = line_kernels.nearest_neighbors(stacked, offsets, k)
-    if offsets[-1] == batch * n:
-        return valid, torch.from_numpy(found).view(batch, n, k), torch.from_numpy(found_dist).view(batch, n, k)
-    idx = torch.zeros(batch, n, k, dtype=torch.int64)
-    dist = torch.zeros(batch, n, k, dtype=torch.float64)
-    idx[valid], dist[valid] = torch.from_numpy(found), torch.from_numpy(found_dist)
-    return valid, idx, dist
+    result, start = [], 0
+    for cloud, valid in zip(clouds, valids, strict=True):
+        batch, n = cloud.shape[:2]
+        stop = start + int(valid.sum())
+        side_found, side_dist = torch.from_numpy(found[start:stop]), torch.from_numpy(found_dist[start:stop])
+        if stop - start == batch * n:
+            result.append((valid, side_found.view(batch, n, k), side_dist.view(batch, n, k)))
+        else:
+            idx = torch.zeros(batch, n, k, dtype=torch.int64)
+            dist = torch.zeros(batch, n, k, dtype=torch.float64)
+            idx[valid], dist[valid] = side_found, side_dist
+            result.append((valid, idx, dist))
+        start = stop
+    return result
 
 
 @dataclass
@@ -485,16 +496,16 @@ def _line_batch(src, tgt, src_lengths, tgt_lengths, options, generator, lines) -
 def _cloud_setups(src, tgt, src_lengths, tgt_lengths, options, backend):
     """Per side (source, target): detached float64 points (on the CPU for ``numba``), ``valid``
     masks, neighbours and cylinder radii."""
-    clouds, valids, radii, neighbors = [], [], [], []
-    for cloud, lengths in ((src, src_lengths), (tgt, tgt_lengths)):
-        coords = cloud.detach().double()
-        if backend == "numba":
-            coords = coords.cpu()
-        valid, nbr, dist = _neighbors(coords, lengths, options.k, backend)
-        clouds.append(coords)
-        valids.append(valid)
-        neighbors.append(nbr)
-        radii.append(_cylinder_radius(coords, valid, nbr, dist, options))
+    clouds = [cloud.detach().double() for cloud in (src, tgt)]
+    if backend == "numba":
+        clouds = [cloud.cpu() for cloud in clouds]
+    setups = _neighbors(clouds, [src_lengths, tgt_lengths], options.k, backend)
+    valids = [valid for valid, _, _ in setups]
+    neighbors = [nbr for _, nbr, _ in setups]
+    radii = [
+        _cylinder_radius(cloud, valid, nbr, dist, options)
+        for cloud, (valid, nbr, dist) in zip(clouds, setups, strict=True)
+    ]
     return clouds, valids, radii, neighbors
 
 

@@ -54,7 +54,8 @@ _GRID_CELL_CAP_PER_POINT = 8
 _MIN_GRID_CELLS = 4096
 
 
-def grid_cell_size(points: np.ndarray, radius: np.ndarray, cell_factor: float, n_points: int) -> float:
+@numba.njit(cache=True)
+def grid_cell_size(points, radius, cell_factor, n_points):
     """Cell edge of the dilated grid over ``points (P, 3)`` (one sample's clouds together):
     ``cell_factor * (n_points / 1024)^(1/6)`` times the median radius, bounded so the grid has at
     most ``max(4096, 8 P)`` cells (memory linear in ``P``); ``n_points`` is the size of one cloud.
@@ -63,12 +64,16 @@ def grid_cell_size(points: np.ndarray, radius: np.ndarray, cell_factor: float, n
     and points tested (``~ N * cell^2`` on a surface), whose optimum is ``cell ~ N^(-1/3)``, while
     the radius shrinks as ``N^(-1/2)`` (``scripts/bench_loss.py`` shows the effect).
     """
-    extent = points.max(axis=0) - points.min(axis=0) + 2.0 * radius.max()
-    cap = max(_MIN_GRID_CELLS, _GRID_CELL_CAP_PER_POINT * len(points))
-    floor = float((np.prod(np.maximum(extent, 1e-300)) / cap) ** (1.0 / 3.0))
-    floor = max(floor, float(extent.max()) / 1024.0)
+    volume = 1.0
+    longest = 0.0
+    for a in range(3):
+        extent = points[:, a].max() - points[:, a].min() + 2.0 * radius.max()
+        volume *= max(extent, 1e-300)
+        longest = max(longest, extent)
+    cap = max(_MIN_GRID_CELLS, _GRID_CELL_CAP_PER_POINT * points.shape[0])
+    floor = max((volume / cap) ** (1.0 / 3.0), longest / 1024.0)
     factor = cell_factor * (n_points / 1024.0) ** (1.0 / 6.0)
-    return max(factor * float(np.median(radius)), floor, float(np.finfo(np.float64).tiny))
+    return max(factor * np.median(radius), floor, np.finfo(np.float64).tiny)
 
 
 @numba.njit(cache=True, inline="always")

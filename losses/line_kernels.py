@@ -11,19 +11,21 @@ ring).
 Candidate search, without ever testing all point-line pairs:
 
 * every point ``p`` with radius ``r_p`` is inserted into each cell of a uniform grid that its
-  ball ``B(p, r_p)`` overlaps (a "dilated" grid, built once per call in ``O(N)``);
-* each line walks the cells it crosses (3D-DDA, Amanatides & Woo 1987) and tests the points
-  stored there. If ``dist(p, line) < r_p``, the foot of the perpendicular ``q`` lies in
-  ``B(p, r_p)``, so the cell that the walk visits at ``q``'s line parameter holds a copy of
-  ``p``. A point is therefore accepted only in the cell whose parameter interval contains its
-  own parameter ``t_p``, which finds every candidate exactly once.
+  ball ``B(p, r_p)`` overlaps (a "dilated" grid, built once per call in ``O(N)``); one grid holds
+  both clouds of a sample (source and target share their lines), so each line is walked once;
+* each line walks the cells it crosses (3D-DDA, Amanatides & Woo 1987; each axis steps exactly
+  the cells between the line's entry and exit cells) and tests the points stored there. If
+  ``dist(p, line) < r_p``, the foot of the perpendicular ``q`` lies in ``B(p, r_p)``, so the cell
+  that the walk visits at ``q``'s line parameter holds a copy of ``p``. A point is therefore
+  accepted only in the cell whose parameter interval contains its own parameter ``t_p``, which
+  finds every candidate exactly once.
 
 Work is ``O(N + L * (cells crossed + points met))``; memory ``O(N + L + hits)``. Each line is
 scanned in two phases: a branch-free pass over the points of the cells it crosses collects the
 candidates (a data-dependent branch per tested point costs more than the test itself), then the
-neighbour test and the weights run on those few.
+neighbour test and the weights run on those few, each written to its own cloud's output.
 
-Threads: :func:`line_intersections` takes all clouds of a batch (sources and targets) at once
+Threads: :func:`line_intersections` takes all samples of a batch (sources and targets) at once
 and runs work items of a few hundred lines in parallel (``numba.prange``; the number of threads
 is numba's, ``NUMBA_NUM_THREADS`` or ``numba.set_num_threads``). Results do not depend on it. On
 a machine shared with other processes, OpenMP threads that spin while they wait (the default of

@@ -27,7 +27,8 @@ on a quiet machine and with another process spinning on one core (started and st
 
 ``--profile`` instead profiles ``--repeats`` forward+backward calls per row with ``cProfile`` on one
 thread, timed in CPU time of the process (steady on a machine busy with other jobs, where wall
-times are not), and prints the functions that take the most time of their own.
+times are not), and prints the functions that take the most time of their own, then the time of
+the metric's pieces (candidate search, line sampler, kNN, matching and value, the rest).
 
 OpenMP threads that spin while they wait make every parallel region wait for a descheduled
 thread on a busy machine; the script sets ``OMP_WAIT_POLICY=PASSIVE`` before importing torch
@@ -277,6 +278,14 @@ def batch_table(args) -> None:
                 hog.wait()
 
 
+PROFILE_PIECES = {
+    "line_intersections": "candidate search (line_kernels.line_intersections)",
+    "sample_line_batch": "line sampler (lines.sample_line_batch)",
+    "nearest_neighbors": "kNN (line_kernels.nearest_neighbors)",
+    "welsch_lines": "matching, value and gradient (line_kernels.welsch_lines)",
+}
+
+
 def profile_table(args) -> None:
     """CPU milliseconds per forward+backward call, in total and per function (own time), one thread."""
     set_threads(1)
@@ -303,6 +312,14 @@ def profile_table(args) -> None:
             for (filename, line, name), (_, _, own, _, _) in rows[:12]:
                 where = f"{Path(filename).name}:{line}({name})" if line else name
                 print(f"| {where} | {own * 1000 / calls:.2f} | {own * 1000 / calls / total:.0%} |")
+            pieces = {name: 0.0 for name in PROFILE_PIECES.values()}
+            for (_, _, function), (_, _, _, cumulative, _) in stats.stats.items():
+                if function in PROFILE_PIECES:
+                    pieces[PROFILE_PIECES[function]] += cumulative * 1000 / calls
+            pieces["the rest"] = total - sum(pieces.values())
+            print("\n| piece (cumulative) | ms per call |\n|---|---:|")
+            for piece, ms in pieces.items():
+                print(f"| {piece} | {ms:.2f} |")
 
 
 def main() -> None:

@@ -320,10 +320,11 @@ def _neighbors(
 
 @dataclass
 class KernelPlan:
-    """The index decisions of the numba kernel for a batch: the inputs and output of
-    :func:`linereg.losses.line_kernels.line_intersections` (clouds ordered ``src_0 .. src_{B-1},
-    tgt_0 .. tgt_{B-1}``, cloud ``c`` holding the first ``point_lengths[c]`` points of its
-    sample; sample ``b`` on both sides uses the same lines)."""
+    """The index decisions of the numba kernel for a batch: the output of
+    :func:`linereg.losses.line_kernels.line_intersections` and its inputs, per cloud (clouds
+    ordered ``src_0 .. src_{B-1}, tgt_0 .. tgt_{B-1}``, cloud ``c`` holding the first
+    ``point_lengths[c]`` points of its sample and the lines ``line_offsets[c]:line_offsets[c+1]``
+    of ``offsets``; sample ``b`` on both sides uses the same lines)."""
 
     offsets: np.ndarray
     anchors: np.ndarray

@@ -285,34 +285,46 @@ def _cylinder_radius(
 
 
 def _neighbors(
-    cloud: torch.Tensor, lengths: torch.Tensor, k: int, backend: str
-) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """``valid (B, N)``, ``neighbors (B, N, k)`` (sample-local) and their ``distances (B, N, k)``:
-    a grid search per sample for ``numba`` (:func:`linereg.losses.line_kernels.nearest_neighbors`), a
-    masked brute-force search for ``torch``; rows of padding points are zero for ``numba``."""
-    batch, n = cloud.shape[:2]
-    valid = torch.arange(n, device=cloud.device)[None] < lengths.to(cloud.device)[:, None]
+    clouds: list[torch.Tensor], lengths: list[torch.Tensor], k: int, backend: str
+) -> list[tuple[torch.Tensor, torch.Tensor, torch.Tensor]]:
+    """Per side, ``valid (B, N)``, ``neighbors (B, N, k)`` (sample-local) and their
+    ``distances (B, N, k)`` of ``clouds[side] (B, N, 3)`` with ``lengths[side] (B,)`` valid points:
+    a grid search per cloud for ``numba`` (:func:`linereg.losses.line_kernels.nearest_neighbors`,
+    one call for every cloud of both sides), a masked brute-force search for ``torch``; rows of
+    padding points are zero for ``numba``."""
+    valids = [
+        torch.arange(cloud.shape[1], device=cloud.device)[None] < side_lengths.to(cloud.device)[:, None]
+        for cloud, side_lengths in zip(clouds, lengths, strict=True)
+    ]
     if backend == "torch":
-        idx, dist = line_torch.masked_knn(cloud, valid, k)
-        return valid, idx, dist
-    counts = lengths.tolist()
+        return [(valid, *line_torch.masked_knn(cloud, valid, k)) for cloud, valid in zip(clouds, valids, strict=True)]
+    counts = [c for side_lengths in lengths for c in side_lengths.tolist()]
     offsets = np.concatenate([[0], np.cumsum(counts)])
-    stacked = cloud[valid].numpy() if sum(counts) < batch * n else cloud.reshape(-1, 3).numpy()
+    stacked = np.concatenate([cloud[valid].numpy() for cloud, valid in zip(clouds, valids, strict=True)])
     found, found_dist = line_kernels.nearest_neighbors(stacked, offsets, k)
-    if offsets[-1] == batch * n:
-        return valid, torch.from_numpy(found).view(batch, n, k), torch.from_numpy(found_dist).view(batch, n, k)
-    idx = torch.zeros(batch, n, k, dtype=torch.int64)
-    dist = torch.zeros(batch, n, k, dtype=torch.float64)
-    idx[valid], dist[valid] = torch.from_numpy(found), torch.from_numpy(found_dist)
-    return valid, idx, dist
+    result, start = [], 0
+    for cloud, valid in zip(clouds, valids, strict=True):
+        batch, n = cloud.shape[:2]
+        stop = start + int(valid.sum())
+        side_found, side_dist = torch.from_numpy(found[start:stop]), torch.from_numpy(found_dist[start:stop])
+        if stop - start == batch * n:
+            result.append((valid, side_found.view(batch, n, k), side_dist.view(batch, n, k)))
+        else:
+            idx = torch.zeros(batch, n, k, dtype=torch.int64)
+            dist = torch.zeros(batch, n, k, dtype=torch.float64)
+            idx[valid], dist[valid] = side_found, side_dist
+            result.append((valid, idx, dist))
+        start = stop
+    return result
 
 
 @dataclass
 class KernelPlan:
-    """The index decisions of the numba kernel for a batch: the inputs and output of
-    :func:`linereg.losses.line_kernels.line_intersections` (clouds ordered ``src_0 .. src_{B-1},
-    tgt_0 .. tgt_{B-1}``, cloud ``c`` holding the first ``point_lengths[c]`` points of its
-    sample; sample ``b`` on both sides uses the same lines)."""
+    """The index decisions of the numba kernel for a batch: the output of
+    :func:`linereg.losses.line_kernels.line_intersections` and its inputs, per cloud (clouds
+    ordered ``src_0 .. src_{B-1}, tgt_0 .. tgt_{B-1}``, cloud ``c`` holding the first
+    ``point_lengths[c]`` points of its sample and the lines ``line_offsets[c]:line_offsets[c+1]``
+    of ``offsets``; sample ``b`` on both sides uses the same lines)."""
 
     offsets: np.ndarray
     anchors: np.ndarray
@@ -338,7 +350,8 @@ def _stacked_points(clouds: list[torch.Tensor], lengths: np.ndarray) -> np.ndarr
 def _numba_plan(
     clouds: list[torch.Tensor], valids: list[torch.Tensor], radii, neighbors, lines: LineBatch, options
 ) -> KernelPlan:
-    """Intersections of the lines with every cloud of both sides, one kernel call for all.
+    """Intersections of the lines with every cloud of both sides, one kernel call for all (each
+    sample's lines walk one grid holding both of its clouds).
 
     Args:
         clouds: per side, ``(B, N_side, 3)`` float64 CPU points (detached).
@@ -348,30 +361,30 @@ def _numba_plan(
     mode = INTERSECTIONS[options.intersection]
     origins = lines.origins.cpu().numpy()
     dirs = lines.dirs.cpu().numpy()
-    line_o, line_d, line_ids, points, radius, nbrs, cells = [], [], [], [], [], [], []
-    for cloud, valid, rad, nbr in zip(clouds, valids, radii, neighbors, strict=True):
-        lengths = valid.sum(dim=1).tolist()
+    counts = [int(c) for c in lines.counts]
+    lengths = [valid.sum(dim=1).tolist() for valid in valids]
+    points, radius, nbrs = [], [], []
+    for cloud, rad, nbr, side_lengths in zip(clouds, radii, neighbors, lengths, strict=True):
         for b in range(batch):
-            coords = cloud[b, : lengths[b]].numpy()
-            r = rad[b, : lengths[b]].numpy()
-            count = int(lines.counts[b])
-            line_o.append(origins[b, :count])
-            line_d.append(dirs[b, :count])
-            line_ids.append(b * n_lines + np.arange(count))
-            points.append(coords)
-            radius.append(r)
-            local = nbr[b, : lengths[b]].numpy()
+            points.append(cloud[b, : side_lengths[b]].numpy())
+            radius.append(rad[b, : side_lengths[b]].numpy())
+            local = nbr[b, : side_lengths[b]].numpy()
             nbrs.append(local if mode != line_kernels.MODE_CANDIDATES else local[:, :0])
-            cells.append(line_kernels.grid_cell_size(coords, r, options.cell_factor))
-    line_offsets = np.concatenate([[0], np.cumsum([len(o) for o in line_o])])
+    cells = []
+    for b in range(batch):
+        sample_points = np.concatenate([points[b], points[batch + b]])
+        sample_radius = np.concatenate([radius[b], radius[batch + b]])
+        n_points = (lengths[0][b] + lengths[1][b]) / 2
+        cells.append(line_kernels.grid_cell_size(sample_points, sample_radius, options.cell_factor, n_points))
+    sample_line_offsets = np.concatenate([[0], np.cumsum(counts)])
     point_offsets = np.concatenate([[0], np.cumsum([len(p) for p in points])])
     threads = numba.get_num_threads()
-    chunk = int(np.clip(line_offsets[-1] // (8 * threads), 64, 1024))
+    chunk = int(np.clip(sample_line_offsets[-1] // (4 * threads), 64, 1024))
     stacked_neighbors = np.ascontiguousarray(np.concatenate(nbrs))
     offsets, anchors, weights = line_kernels.line_intersections(
-        np.concatenate(line_o),
-        np.concatenate(line_d),
-        line_offsets,
+        np.concatenate([origins[b, : counts[b]] for b in range(batch)]),
+        np.concatenate([dirs[b, : counts[b]] for b in range(batch)]),
+        sample_line_offsets,
         np.concatenate(points),
         point_offsets,
         np.concatenate(radius),
@@ -381,8 +394,15 @@ def _numba_plan(
         np.array(cells),
         chunk,
     )
+    line_ids = np.concatenate([b * n_lines + np.arange(counts[b]) for b in range(batch)])
     return KernelPlan(
-        offsets, anchors, weights, line_offsets, np.concatenate(line_ids), point_offsets, stacked_neighbors
+        offsets,
+        anchors,
+        weights,
+        np.concatenate([[0], np.cumsum(counts + counts)]),
+        np.concatenate([line_ids, line_ids]),
+        point_offsets,
+        stacked_neighbors,
     )
 
 
@@ -477,16 +497,16 @@ def _line_batch(src, tgt, src_lengths, tgt_lengths, options, generator, lines) -
 def _cloud_setups(src, tgt, src_lengths, tgt_lengths, options, backend):
     """Per side (source, target): detached float64 points (on the CPU for ``numba``), ``valid``
     masks, neighbours and cylinder radii."""
-    clouds, valids, radii, neighbors = [], [], [], []
-    for cloud, lengths in ((src, src_lengths), (tgt, tgt_lengths)):
-        coords = cloud.detach().double()
-        if backend == "numba":
-            coords = coords.cpu()
-        valid, nbr, dist = _neighbors(coords, lengths, options.k, backend)
-        clouds.append(coords)
-        valids.append(valid)
-        neighbors.append(nbr)
-        radii.append(_cylinder_radius(coords, valid, nbr, dist, options))
+    clouds = [cloud.detach().double() for cloud in (src, tgt)]
+    if backend == "numba":
+        clouds = [cloud.cpu() for cloud in clouds]
+    setups = _neighbors(clouds, [src_lengths, tgt_lengths], options.k, backend)
+    valids = [valid for valid, _, _ in setups]
+    neighbors = [nbr for _, nbr, _ in setups]
+    radii = [
+        _cylinder_radius(cloud, valid, nbr, dist, options)
+        for cloud, (valid, nbr, dist) in zip(clouds, setups, strict=True)
+    ]
     return clouds, valids, radii, neighbors
 
 

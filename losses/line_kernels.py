@@ -11,19 +11,21 @@ ring).
 Candidate search, without ever testing all point-line pairs:
 
 * every point ``p`` with radius ``r_p`` is inserted into each cell of a uniform grid that its
-  ball ``B(p, r_p)`` overlaps (a "dilated" grid, built once per call in ``O(N)``);
-* each line walks the cells it crosses (3D-DDA, Amanatides & Woo 1987) and tests the points
-  stored there. If ``dist(p, line) < r_p``, the foot of the perpendicular ``q`` lies in
-  ``B(p, r_p)``, so the cell that the walk visits at ``q``'s line parameter holds a copy of
-  ``p``. A point is therefore accepted only in the cell whose parameter interval contains its
-  own parameter ``t_p``, which finds every candidate exactly once.
+  ball ``B(p, r_p)`` overlaps (a "dilated" grid, built once per call in ``O(N)``); one grid holds
+  both clouds of a sample (source and target share their lines), so each line is walked once;
+* each line walks the cells it crosses (3D-DDA, Amanatides & Woo 1987; each axis steps exactly
+  the cells between the line's entry and exit cells) and tests the points stored there. If
+  ``dist(p, line) < r_p``, the foot of the perpendicular ``q`` lies in ``B(p, r_p)``, so the cell
+  that the walk visits at ``q``'s line parameter holds a copy of ``p``. A point is therefore
+  accepted only in the cell whose parameter interval contains its own parameter ``t_p``, which
+  finds every candidate exactly once.
 
 Work is ``O(N + L * (cells crossed + points met))``; memory ``O(N + L + hits)``. Each line is
 scanned in two phases: a branch-free pass over the points of the cells it crosses collects the
 candidates (a data-dependent branch per tested point costs more than the test itself), then the
-neighbour test and the weights run on those few.
+neighbour test and the weights run on those few, each written to its own cloud's output.
 
-Threads: :func:`line_intersections` takes all clouds of a batch (sources and targets) at once
+Threads: :func:`line_intersections` takes all samples of a batch (sources and targets) at once
 and runs work items of a few hundred lines in parallel (``numba.prange``; the number of threads
 is numba's, ``NUMBA_NUM_THREADS`` or ``numba.set_num_threads``). Results do not depend on it. On
 a machine shared with other processes, OpenMP threads that spin while they wait (the default of
@@ -54,70 +56,92 @@ _GRID_CELL_CAP_PER_POINT = 8
 _MIN_GRID_CELLS = 4096
 
 
-def grid_cell_size(points: np.ndarray, radius: np.ndarray, cell_factor: float) -> float:
-    """Cell edge for the dilated grid: ``cell_factor * (N / 1024)^(1/6)`` times the median radius,
-    bounded so the grid has at most ``max(4096, 8 N)`` cells (memory linear in ``N``).
+@numba.njit(cache=True)
+def grid_cell_size(points, radius, cell_factor, n_points):
+    """Cell edge of the dilated grid over ``points (P, 3)`` (one sample's clouds together):
+    ``cell_factor * (n_points / 1024)^(1/6)`` times the median radius, bounded so the grid has at
+    most ``max(4096, 8 P)`` cells (memory linear in ``P``); ``n_points`` is the size of one cloud.
 
-    The growth with ``N`` balances the two costs of a line: cells crossed (``~ 1 / cell``) and
-    points tested (``~ N * cell^2`` on a surface), whose optimum is ``cell ~ N^(-1/3)``, while
+    The growth with ``n_points`` balances the two costs of a line: cells crossed (``~ 1 / cell``)
+    and points tested (``~ N * cell^2`` on a surface), whose optimum is ``cell ~ N^(-1/3)``, while
     the radius shrinks as ``N^(-1/2)`` (``scripts/bench_loss.py`` shows the effect).
     """
-    extent = points.max(axis=0) - points.min(axis=0) + 2.0 * radius.max()
-    cap = max(_MIN_GRID_CELLS, _GRID_CELL_CAP_PER_POINT * len(points))
-    floor = float((np.prod(np.maximum(extent, 1e-300)) / cap) ** (1.0 / 3.0))
-    floor = max(floor, float(extent.max()) / 1024.0)
-    factor = cell_factor * (len(points) / 1024.0) ** (1.0 / 6.0)
-    return max(factor * float(np.median(radius)), floor, float(np.finfo(np.float64).tiny))
+    volume = 1.0
+    longest = 0.0
+    for a in range(3):
+        extent = points[:, a].max() - points[:, a].min() + 2.0 * radius.max()
+        volume *= max(extent, 1e-300)
+        longest = max(longest, extent)
+    cap = max(_MIN_GRID_CELLS, _GRID_CELL_CAP_PER_POINT * points.shape[0])
+    floor = max((volume / cap) ** (1.0 / 3.0), longest / 1024.0)
+    factor = cell_factor * (n_points / 1024.0) ** (1.0 / 6.0)
+    return max(factor * np.median(radius), floor, np.finfo(np.float64).tiny)
+
+
+@numba.njit(cache=True, inline="always")
+def _ball_cells(points, radius, i, grid_min, dims, cell):
+    """Cell index range ``lo_x, hi_x, lo_y, hi_y, lo_z, hi_z`` (inclusive) overlapped by the
+    bounding box of ``B(points[i], radius[i])``."""
+    r = radius[i]
+    lx = min(dims[0] - 1, max(0, int((points[i, 0] - r - grid_min[0]) / cell)))
+    hx = min(dims[0] - 1, max(0, int((points[i, 0] + r - grid_min[0]) / cell)))
+    ly = min(dims[1] - 1, max(0, int((points[i, 1] - r - grid_min[1]) / cell)))
+    hy = min(dims[1] - 1, max(0, int((points[i, 1] + r - grid_min[1]) / cell)))
+    lz = min(dims[2] - 1, max(0, int((points[i, 2] - r - grid_min[2]) / cell)))
+    hz = min(dims[2] - 1, max(0, int((points[i, 2] + r - grid_min[2]) / cell)))
+    return lx, hx, ly, hy, lz, hz
 
 
 @numba.njit(cache=True)
-def build_dilated_grid(points, radius, cell):
-    """CSR grid: cell ``c`` holds ``cell_points[cell_start[c]:cell_start[c+1]]``.
+def build_dilated_grid(points, radius, starts, stops, cell):
+    """CSR grid over the rows ``starts[g]:stops[g]`` of ``points`` (the clouds of one sample):
+    cell ``c`` holds entries ``cell_start[c]:cell_start[c+1]``, each a copy of a point whose
+    ``radius``-ball overlaps the cell, in cloud order then row order.
 
-    Returns ``(grid_min (3,), dims (3,) int64, cell_start (C+1,), cell_points (S,),
-    cell_xyzr (4, S))``; ``cell_xyzr`` repeats each stored point's coordinates and radius in
-    cell order so that the line walk reads memory sequentially.
+    Returns ``(grid_min (3,), dims (3,) int64, cell_start (C+1,), entry_rows (S,) int64,
+    entry_xyzr (S, 4))``: the row of each entry in ``points`` and its coordinates and squared
+    radius, stored in cell order so that a line walk reads memory sequentially.
     """
-    n = points.shape[0]
-    grid_min = np.empty(3)
-    grid_max = np.empty(3)
-    r_max = radius.max()
-    for a in range(3):
-        grid_min[a] = points[:, a].min() - r_max
-        grid_max[a] = points[:, a].max() + r_max
+    grid_min = np.full(3, np.inf)
+    grid_max = np.full(3, -np.inf)
+    r_max = 0.0
+    for g in range(starts.shape[0]):
+        for i in range(starts[g], stops[g]):
+            r_max = max(r_max, radius[i])
+            for a in range(3):
+                grid_min[a] = min(grid_min[a], points[i, a])
+                grid_max[a] = max(grid_max[a], points[i, a])
     dims = np.empty(3, dtype=np.int64)
     for a in range(3):
-        dims[a] = max(1, math.ceil((grid_max[a] - grid_min[a]) / cell))
-    n_cells = dims[0] * dims[1] * dims[2]
-    lo = np.empty((n, 3), dtype=np.int64)
-    hi = np.empty((n, 3), dtype=np.int64)
-    counts = np.zeros(n_cells + 1, dtype=np.int64)
-    for i in range(n):
-        for a in range(3):
-            lo[i, a] = min(dims[a] - 1, max(0, int((points[i, a] - radius[i] - grid_min[a]) / cell)))
-            hi[i, a] = min(dims[a] - 1, max(0, int((points[i, a] + radius[i] - grid_min[a]) / cell)))
-        for x in range(lo[i, 0], hi[i, 0] + 1):
-            for y in range(lo[i, 1], hi[i, 1] + 1):
-                for z in range(lo[i, 2], hi[i, 2] + 1):
-                    counts[(x * dims[1] + y) * dims[2] + z + 1] += 1
+        grid_min[a] -= r_max
+        dims[a] = max(1, math.ceil((grid_max[a] + r_max - grid_min[a]) / cell))
+    counts = np.zeros(dims[0] * dims[1] * dims[2] + 1, dtype=np.int64)
+    for g in range(starts.shape[0]):
+        for i in range(starts[g], stops[g]):
+            lx, hx, ly, hy, lz, hz = _ball_cells(points, radius, i, grid_min, dims, cell)
+            for x in range(lx, hx + 1):
+                for y in range(ly, hy + 1):
+                    for z in range(lz, hz + 1):
+                        counts[(x * dims[1] + y) * dims[2] + z + 1] += 1
     cell_start = np.cumsum(counts)
     fill = cell_start[:-1].copy()
-    cell_points = np.empty(cell_start[-1], dtype=np.int64)
-    for i in range(n):
-        for x in range(lo[i, 0], hi[i, 0] + 1):
-            for y in range(lo[i, 1], hi[i, 1] + 1):
-                for z in range(lo[i, 2], hi[i, 2] + 1):
-                    c = (x * dims[1] + y) * dims[2] + z
-                    cell_points[fill[c]] = i
-                    fill[c] += 1
-    cell_xyzr = np.empty((4, cell_points.shape[0]))
-    for s in range(cell_points.shape[0]):
-        i = cell_points[s]
-        cell_xyzr[0, s] = points[i, 0]
-        cell_xyzr[1, s] = points[i, 1]
-        cell_xyzr[2, s] = points[i, 2]
-        cell_xyzr[3, s] = radius[i]
-    return grid_min, dims, cell_start, cell_points, cell_xyzr
+    entry_rows = np.empty(cell_start[-1], dtype=np.int64)
+    entry_xyzr = np.empty((cell_start[-1], 4))
+    for g in range(starts.shape[0]):
+        for i in range(starts[g], stops[g]):
+            lx, hx, ly, hy, lz, hz = _ball_cells(points, radius, i, grid_min, dims, cell)
+            for x in range(lx, hx + 1):
+                for y in range(ly, hy + 1):
+                    for z in range(lz, hz + 1):
+                        c = (x * dims[1] + y) * dims[2] + z
+                        s = fill[c]
+                        fill[c] = s + 1
+                        entry_rows[s] = i
+                        entry_xyzr[s, 0] = points[i, 0]
+                        entry_xyzr[s, 1] = points[i, 1]
+                        entry_xyzr[s, 2] = points[i, 2]
+                        entry_xyzr[s, 3] = radius[i] * radius[i]
+    return grid_min, dims, cell_start, entry_rows, entry_xyzr
 
 
 @numba.njit(cache=True, inline="always")
@@ -130,17 +154,6 @@ def _line_distance(points, i, ox, oy, oz, ux, uy, uz, eps2):
     t = dx * ux + dy * uy + dz * uz
     d2 = dx * dx + dy * dy + dz * dz - t * t
     return math.sqrt(max(d2, 0.0) + eps2)
-
-
-@numba.njit(cache=True, inline="always")
-def _axis_setup(o, u, lo, cell, dim, t_start):
-    """DDA set-up on one axis: ``(cell index, step, t of the next boundary, t per cell)``."""
-    i = min(dim - 1, max(0, int((o + t_start * u - lo) / cell)))
-    if u > 1e-15:
-        return i, 1, (lo + (i + 1) * cell - o) / u, cell / u
-    if u < -1e-15:
-        return i, -1, (lo + i * cell - o) / u, -cell / u
-    return i, 0, np.inf, np.inf
 
 
 @numba.njit(cache=True, inline="always")
@@ -190,177 +203,83 @@ def _pierce_weights(points, a, b, c, ox, oy, oz, ux, uy, uz, out):
     return True
 
 
-@numba.njit(cache=True, inline="always")
-def _scan_line(
-    line,
-    origins,
-    dirs,
-    points,
-    radius,
-    neighbors,
-    mode,
-    eps2,
-    grid_min,
-    dims,
-    cell,
-    cell_start,
-    cell_points,
-    cell_xyzr,
-    scratch_entry,
-    scratch_d2,
-    scratch_near,
-    out_anchor,
-    out_weight,
-    out_start,
-    out_stop,
-):
-    """Walk one line through the grid of one cloud and return its number of intersections.
 
-    Intersection ``j`` of the line is written to row ``out_start + j`` of ``out_anchor`` and
-    ``out_weight`` when that row is below ``out_stop``; the ones beyond are only counted.
-    ``scratch_entry`` and ``scratch_d2`` hold at least as many rows as the grid has entries,
-    ``scratch_near`` ``k``.
+
+@numba.njit(cache=True, inline="always")
+def _axis_walk(o, u, lo, cell, dim, t_in, t_out):
+    """DDA set-up on one axis between the parameters ``t_in`` and ``t_out`` of a line inside the
+    grid box: ``(first cell index, cells to step, t of the first boundary, t per cell)``."""
+    first = min(dim - 1, max(0, int((o + t_in * u - lo) / cell)))
+    last = min(dim - 1, max(0, int((o + t_out * u - lo) / cell)))
+    if u > 1e-15:
+        return first, max(last - first, 0), (lo + (first + 1) * cell - o) / u, cell / u
+    if u < -1e-15:
+        return first, max(first - last, 0), (lo + first * cell - o) / u, -cell / u
+    return first, 0, np.inf, np.inf
+
+
+@numba.njit(cache=True, inline="always")
+def _collect_candidates(ox, oy, oz, ux, uy, uz, eps2, grid_min, dims, cell, cell_start, entry_xyzr, found):
+    """Walk the line ``o + t u`` through a dilated grid (3D-DDA) and write to ``found`` the
+    entries within their radius of it, in walk order; return their number.
+
+    A point is stored in every cell its ball overlaps, so it is kept only in the cell whose
+    parameter interval holds its foot point's ``t`` (each point at most once). The test is
+    branch-free: every tested entry is written, and the count only advances past candidates.
     """
-    ox, oy, oz = origins[line, 0], origins[line, 1], origins[line, 2]
-    ux, uy, uz = dirs[line, 0], dirs[line, 1], dirs[line, 2]
     nx, ny, nz = dims[0], dims[1], dims[2]
-    k = neighbors.shape[1]
     t0, t1 = _slab(ox, ux, grid_min[0], grid_min[0] + nx * cell, -np.inf, np.inf)
     t0, t1 = _slab(oy, uy, grid_min[1], grid_min[1] + ny * cell, t0, t1)
     t0, t1 = _slab(oz, uz, grid_min[2], grid_min[2] + nz * cell, t0, t1)
-    if t0 >= t1:
+    if not t0 < t1:
         return 0
-    t_start = t0 + 1e-9 * (t1 - t0)
-    ix, sx, tmx, tdx = _axis_setup(ox, ux, grid_min[0], cell, nx, t_start)
-    iy, sy, tmy, tdy = _axis_setup(oy, uy, grid_min[1], cell, ny, t_start)
-    iz, sz, tmz, tdz = _axis_setup(oz, uz, grid_min[2], cell, nz, t_start)
-    # Phase 1: collect the candidates in walk order with a branch-free test. Each stored point is
-    # kept only in the cell whose parameter interval holds its foot point (dedup).
-    found = 0
-    t_enter = -np.inf
-    while True:
-        # Next boundary crossed, and whether this is the last cell on the line.
-        if tmx <= tmy and tmx <= tmz:
-            t_exit = tmx
-            last = ix + sx < 0 or ix + sx >= nx
-        elif tmy <= tmz:
-            t_exit = tmy
-            last = iy + sy < 0 or iy + sy >= ny
-        else:
-            t_exit = tmz
-            last = iz + sz < 0 or iz + sz >= nz
-        if t_exit >= t1:
-            last = True
-        if last:
-            t_exit = np.inf
-        c = (ix * ny + iy) * nz + iz
-        for s in range(cell_start[c], cell_start[c + 1]):
-            dx = cell_xyzr[0, s] - ox
-            dy = cell_xyzr[1, s] - oy
-            dz = cell_xyzr[2, s] - oz
-            t = dx * ux + dy * uy + dz * uz
-            r = cell_xyzr[3, s]
-            d2 = max(dx * dx + dy * dy + dz * dz - t * t, 0.0)
-            scratch_entry[found] = s
-            scratch_d2[found] = d2
-            found += (d2 + eps2 < r * r) & (t >= t_enter) & (t < t_exit)
-        if last:
-            break
-        t_enter = t_exit
-        if tmx <= tmy and tmx <= tmz:
-            ix += sx
-            tmx += tdx
-        elif tmy <= tmz:
-            iy += sy
-            tmy += tdy
-        else:
-            iz += sz
-            tmz += tdz
-    # Phase 2: the neighbour test and the weights of each candidate.
+    margin = 1e-9 * (t1 - t0)
+    ix, steps_x, tmx, tdx = _axis_walk(ox, ux, grid_min[0], cell, nx, t0 + margin, t1 - margin)
+    iy, steps_y, tmy, tdy = _axis_walk(oy, uy, grid_min[1], cell, ny, t0 + margin, t1 - margin)
+    iz, steps_z, tmz, tdz = _axis_walk(oz, uz, grid_min[2], cell, nz, t0 + margin, t1 - margin)
+    # Each axis steps exactly the cells between the entry and exit cells, so the walk stays in
+    # the grid whatever the rounding of the boundary parameters.
+    if steps_x == 0:
+        tmx = np.inf
+    if steps_y == 0:
+        tmy = np.inf
+    if steps_z == 0:
+        tmz = np.inf
+    stride_x = ny * nz if ux > 0 else -ny * nz
+    stride_y = nz if uy > 0 else -nz
+    stride_z = 1 if uz > 0 else -1
+    c = (ix * ny + iy) * nz + iz
     count = 0
-    for j in range(found):
-        s = scratch_entry[j]
-        i = cell_points[s]
-        r = cell_xyzr[3, s]
-        d = math.sqrt(scratch_d2[j] + eps2)
-        row = out_start + count
-        write = row < out_stop
-        if mode == MODE_CANDIDATES:
-            if write:
-                out_anchor[row] = i
-                out_weight[row, 0] = 1.0
-            count += 1
-            continue
-        # MODE_CONVEX: neighbours must be candidates under their own radius;
-        # MODE_TRIPLET: neighbours must be within the anchor's radius.
-        ok = True
-        total = d
-        for m in range(k):
-            nb = neighbors[i, m]
-            dn = _line_distance(points, nb, ox, oy, oz, ux, uy, uz, eps2)
-            limit = r if mode == MODE_TRIPLET else radius[nb]
-            if dn >= limit:
-                ok = False
-                break
-            scratch_near[m] = dn
-            total += dn
-        if not ok:
-            continue
-        count += 1
-        if not write:
-            continue
-        out_anchor[row] = i
-        if mode == MODE_PIERCE and _pierce_weights(
-            points, i, neighbors[i, 0], neighbors[i, 1], ox, oy, oz, ux, uy, uz, out_weight[row]
-        ):
-            continue
-        if total > 0.0:
-            out_weight[row, 0] = d / total
-            for m in range(k):
-                out_weight[row, m + 1] = scratch_near[m] / total
+    t_enter = -np.inf
+    for _ in range(steps_x + steps_y + steps_z + 1):
+        t_exit = min(tmx, min(tmy, tmz))
+        for s in range(cell_start[c], cell_start[c + 1]):
+            dx = entry_xyzr[s, 0] - ox
+            dy = entry_xyzr[s, 1] - oy
+            dz = entry_xyzr[s, 2] - oz
+            t = dx * ux + dy * uy + dz * uz
+            d2 = max(dx * dx + dy * dy + dz * dz - t * t, 0.0)
+            found[count] = s
+            count += (d2 + eps2 < entry_xyzr[s, 3]) & (t >= t_enter) & (t < t_exit)
+        t_enter = t_exit
+        if tmx == t_exit:
+            c += stride_x
+            steps_x -= 1
+            tmx = tmx + tdx if steps_x > 0 else np.inf
+        elif tmy == t_exit:
+            c += stride_y
+            steps_y -= 1
+            tmy = tmy + tdy if steps_y > 0 else np.inf
         else:
-            for m in range(k + 1):
-                out_weight[row, m] = 1.0 / (k + 1)
+            c += stride_z
+            steps_z -= 1
+            tmz = tmz + tdz if steps_z > 0 else np.inf
     return count
 
 
 @numba.njit(cache=True)
-def _concatenated_grids(points, point_offsets, radius, cells):
-    """One dilated grid per cloud, stored back to back.
-
-    Returns ``grid_min (C, 3)``, ``dims (C, 3)``, ``cell_offsets (C+1,)`` (the CSR array of
-    cloud ``c`` is ``cell_start[cell_offsets[c]:cell_offsets[c+1]]``), and the concatenated
-    ``cell_start`` (indices into the concatenated entries), ``cell_points`` (cloud-local
-    indices) and ``cell_xyzr``.
-    """
-    n_clouds = cells.shape[0]
-    grid_min = np.empty((n_clouds, 3))
-    dims = np.empty((n_clouds, 3), dtype=np.int64)
-    cell_offsets = np.zeros(n_clouds + 1, dtype=np.int64)
-    entry_offsets = np.zeros(n_clouds + 1, dtype=np.int64)
-    grids = []
-    for c in range(n_clouds):
-        p0, p1 = point_offsets[c], point_offsets[c + 1]
-        grid = build_dilated_grid(points[p0:p1], radius[p0:p1], cells[c])
-        grid_min[c] = grid[0]
-        dims[c] = grid[1]
-        cell_offsets[c + 1] = cell_offsets[c] + grid[2].shape[0]
-        entry_offsets[c + 1] = entry_offsets[c] + grid[3].shape[0]
-        grids.append(grid)
-    cell_start = np.empty(cell_offsets[-1], dtype=np.int64)
-    cell_points = np.empty(entry_offsets[-1], dtype=np.int64)
-    cell_xyzr = np.empty((4, entry_offsets[-1]))
-    for c in range(n_clouds):
-        _, _, start, stored, xyzr = grids[c]
-        cell_start[cell_offsets[c] : cell_offsets[c + 1]] = start + entry_offsets[c]
-        cell_points[entry_offsets[c] : entry_offsets[c + 1]] = stored
-        cell_xyzr[:, entry_offsets[c] : entry_offsets[c + 1]] = xyzr
-    return grid_min, dims, cell_offsets, cell_start, cell_points, cell_xyzr
-
-
-@numba.njit(cache=True)
 def _scan_lines(
-    cloud,
+    sample,
     first,
     stop,
     origins,
@@ -371,113 +290,183 @@ def _scan_lines(
     neighbors,
     mode,
     eps2,
-    cells,
-    grids,
+    cell,
+    grid,
     counts,
+    count_lines,
     out_anchor,
     out_weight,
-    out_start,
+    out_row,
     out_stop,
 ):
-    """Scan lines ``first:stop`` against cloud ``cloud``, writing their intersections back to back
-    from row ``out_start`` (only rows below ``out_stop``); fills ``counts`` and returns the total."""
-    grid_min, dims, cell_offsets, cell_start, cell_points, cell_xyzr = grids
-    p0, p1 = point_offsets[cloud], point_offsets[cloud + 1]
-    c0, c1 = cell_offsets[cloud], cell_offsets[cloud + 1]
-    cloud_points, cloud_radius, cloud_neighbors = points[p0:p1], radius[p0:p1], neighbors[p0:p1]
-    entries = cell_start[c1 - 1] - cell_start[c0]
-    scratch_entry = np.empty(entries + 1, dtype=np.int64)
-    scratch_d2 = np.empty(entries + 1)
-    scratch_near = np.empty(cloud_neighbors.shape[1])
-    cloud_min, cloud_dims, cloud_cell, cloud_start = grid_min[cloud], dims[cloud], cells[cloud], cell_start[c0:c1]
-    row = out_start
+    """Intersections of lines ``first:stop`` of sample ``sample`` with each of its clouds.
+
+    Each line walks the sample's grid once (all its clouds together); the intersections of line
+    ``l`` with side ``g`` are written from ``out_row[g]`` on (rows below ``out_stop[g]`` only; the
+    others are only counted) and, if ``count_lines``, counted in ``counts[g * L + l]``. Returns
+    the ``(G,)`` totals.
+    """
+    grid_min, dims, cell_start, entry_rows, entry_xyzr = grid
+    n_sides = out_row.shape[0]
+    n_samples = (point_offsets.shape[0] - 1) // n_sides
+    n_lines = origins.shape[0]
+    k = neighbors.shape[1]
+    found = np.empty(entry_rows.shape[0] + 1, dtype=np.int64)
+    near = np.empty(k)
+    row = out_row.copy()
+    cloud_start = np.empty(n_sides, dtype=np.int64)
+    cloud_stop = np.empty(n_sides, dtype=np.int64)
+    for g in range(n_sides):
+        cloud_start[g] = point_offsets[g * n_samples + sample]
+        cloud_stop[g] = point_offsets[g * n_samples + sample + 1]
     for line in range(first, stop):
-        n = _scan_line(
-            line,
-            origins,
-            dirs,
-            cloud_points,
-            cloud_radius,
-            cloud_neighbors,
-            mode,
-            eps2,
-            cloud_min,
-            cloud_dims,
-            cloud_cell,
-            cloud_start,
-            cell_points,
-            cell_xyzr,
-            scratch_entry,
-            scratch_d2,
-            scratch_near,
-            out_anchor,
-            out_weight,
-            row,
-            out_stop,
+        ox, oy, oz = origins[line, 0], origins[line, 1], origins[line, 2]
+        ux, uy, uz = dirs[line, 0], dirs[line, 1], dirs[line, 2]
+        n_found = _collect_candidates(
+            ox, oy, oz, ux, uy, uz, eps2, grid_min, dims, cell, cell_start, entry_xyzr, found
         )
-        counts[line] = n
-        row += n
-    return row - out_start
+        # The neighbour test and the weights of each candidate.
+        for j in range(n_found):
+            s = found[j]
+            i = entry_rows[s]
+            side = 0
+            while i >= cloud_stop[side]:
+                side += 1
+            p0 = cloud_start[side]
+            r = radius[i]
+            d = math.sqrt(_clamped_d2(points, i, ox, oy, oz, ux, uy, uz) + eps2)
+            ok = True
+            total = d
+            for m in range(k):
+                nb = p0 + neighbors[i, m]
+                dn = _line_distance(points, nb, ox, oy, oz, ux, uy, uz, eps2)
+                # MODE_CONVEX, MODE_PIERCE: neighbours must be candidates under their own
+                # radius; MODE_TRIPLET: within the anchor's radius.
+                limit = r if mode == MODE_TRIPLET else radius[nb]
+                if dn >= limit:
+                    ok = False
+                    break
+                near[m] = dn
+                total += dn
+            if not ok:
+                continue
+            if count_lines:
+                counts[side * n_lines + line] += 1
+            out = row[side]
+            row[side] = out + 1
+            if out >= out_stop[side]:
+                continue
+            out_anchor[out] = i - p0
+            if mode == MODE_CANDIDATES:
+                out_weight[out, 0] = 1.0
+                continue
+            if mode == MODE_PIERCE and _pierce_weights(
+                points, i, p0 + neighbors[i, 0], p0 + neighbors[i, 1], ox, oy, oz, ux, uy, uz, out_weight[out]
+            ):
+                continue
+            if total > 0.0:
+                out_weight[out, 0] = d / total
+                for m in range(k):
+                    out_weight[out, m + 1] = near[m] / total
+            else:
+                for m in range(k + 1):
+                    out_weight[out, m] = 1.0 / (k + 1)
+    return row - out_row
+
+
+@numba.njit(cache=True, inline="always")
+def _clamped_d2(points, i, ox, oy, oz, ux, uy, uz):
+    """Squared distance from point ``i`` to the line ``o + t u``, as the walk computes it."""
+    dx = points[i, 0] - ox
+    dy = points[i, 1] - oy
+    dz = points[i, 2] - oz
+    t = dx * ux + dy * uy + dz * uz
+    return max(dx * dx + dy * dy + dz * dz - t * t, 0.0)
+
+
+@numba.njit(cache=True)
+def _sample_grids(points, point_offsets, radius, cells):
+    """The dilated grid of every sample (its clouds together), as a list."""
+    n_samples = cells.shape[0]
+    n_sides = (point_offsets.shape[0] - 1) // n_samples
+    grids = []
+    for b in range(n_samples):
+        starts = np.empty(n_sides, dtype=np.int64)
+        stops = np.empty(n_sides, dtype=np.int64)
+        for g in range(n_sides):
+            starts[g] = point_offsets[g * n_samples + b]
+            stops[g] = point_offsets[g * n_samples + b + 1]
+        grids.append(build_dilated_grid(points, radius, starts, stops, cells[b]))
+    return grids
 
 
 @numba.njit(cache=True, parallel=True)
 def line_intersections(origins, dirs, line_offsets, points, point_offsets, radius, neighbors, mode, eps2, cells, chunk):
     """All intersections of lines with clouds, for a whole batch at once.
 
-    Cloud ``c`` is ``points[point_offsets[c]:point_offsets[c+1]]``; its lines are rows
-    ``line_offsets[c]:line_offsets[c+1]`` of ``origins`` and ``dirs``. Work items of at most
-    ``chunk`` lines of one cloud run in parallel (numba threads, across clouds and lines); each
-    writes into its own slice of a buffer, and a final pass copies the slices out in line order,
-    so the result does not depend on the number of threads. An item whose lines have more
+    Sample ``b`` has the lines ``line_offsets[b]:line_offsets[b+1]`` of ``origins`` and ``dirs``
+    and ``G`` clouds (sides), cloud ``g`` being ``points[point_offsets[g*B+b]:point_offsets[g*B+b+1]]``.
+    Each sample's clouds share one dilated grid and each line walks it once. Work items of at most
+    ``chunk`` lines of one sample run in parallel (numba threads, across samples and lines); each
+    writes into its own slice of a buffer per side, and a final pass copies the slices out in line
+    order, so the result does not depend on the number of threads. An item whose lines have more
     intersections than its slice holds is scanned again, straight into the output.
 
     Args:
         origins, dirs: ``(L, 3)`` float64 line points and unit directions.
-        line_offsets: ``(C+1,)`` int64 line range of each cloud.
-        points: ``(N, 3)`` float64, the clouds back to back.
-        point_offsets: ``(C+1,)`` int64 point range of each cloud.
+        line_offsets: ``(B+1,)`` int64 line range of each sample.
+        points: ``(N, 3)`` float64, the clouds back to back (``G * B`` of them, side-major).
+        point_offsets: ``(G*B+1,)`` int64 point range of each cloud.
         radius: ``(N,)`` float64 per-point cylinder radius (``delta`` in the paper).
         neighbors: ``(N, k)`` int64 cloud-local indices of the k nearest neighbours of each point
             (self excluded); ``(N, 0)`` for ``MODE_CANDIDATES``.
         mode: ``MODE_CANDIDATES``, ``MODE_CONVEX``, ``MODE_TRIPLET`` or ``MODE_PIERCE``.
         eps2: added under the square root of every point-line distance.
-        cells: ``(C,)`` float64 grid cell edge of each cloud (see :func:`grid_cell_size`).
+        cells: ``(B,)`` float64 grid cell edge of each sample (see :func:`grid_cell_size`).
         chunk: most lines per work item.
 
     Returns:
-        ``offsets (L+1,)`` int64 (intersections of line ``l`` are ``offsets[l]:offsets[l+1]``),
-        ``anchors (H,)`` int64 cloud-local anchor point of each intersection, ``weights (H, k+1)``
-        float64 convex weights of the anchor and its neighbours (detached; Eq. 7's
-        ``d_p / sum d``, or barycentric for ``MODE_PIERCE``).
+        ``offsets (G*L+1,)`` int64 (intersections of line ``l`` with side ``g`` are
+        ``offsets[g*L+l]:offsets[g*L+l+1]``), ``anchors (H,)`` int64 cloud-local anchor point of
+        each intersection, ``weights (H, k+1)`` float64 convex weights of the anchor and its
+        neighbours (detached; Eq. 7's ``d_p / sum d``, or barycentric for ``MODE_PIERCE``).
     """
-    n_clouds = cells.shape[0]
+    n_samples = cells.shape[0]
+    n_sides = (point_offsets.shape[0] - 1) // n_samples
     n_lines = origins.shape[0]
     k = neighbors.shape[1]
-    grids = _concatenated_grids(points, point_offsets, radius, cells)
-    items_per_cloud = np.empty(n_clouds, dtype=np.int64)
-    for c in range(n_clouds):
-        items_per_cloud[c] = (line_offsets[c + 1] - line_offsets[c] + chunk - 1) // chunk
-    n_items = items_per_cloud.sum()
-    item_cloud = np.empty(n_items, dtype=np.int64)
+    grids = _sample_grids(points, point_offsets, radius, cells)
+    items_per_sample = np.empty(n_samples, dtype=np.int64)
+    for b in range(n_samples):
+        items_per_sample[b] = (line_offsets[b + 1] - line_offsets[b] + chunk - 1) // chunk
+    n_items = items_per_sample.sum()
+    item_sample = np.empty(n_items, dtype=np.int64)
     item_first = np.empty(n_items, dtype=np.int64)
     item_stop = np.empty(n_items, dtype=np.int64)
     buffer_start = np.zeros(n_items + 1, dtype=np.int64)
     item = 0
-    for c in range(n_clouds):
-        for j in range(items_per_cloud[c]):
-            item_cloud[item] = c
-            item_first[item] = line_offsets[c] + j * chunk
-            item_stop[item] = min(line_offsets[c + 1], item_first[item] + chunk)
-            # Room for a few intersections per line; busier items are scanned twice.
+    for b in range(n_samples):
+        for j in range(items_per_sample[b]):
+            item_sample[item] = b
+            item_first[item] = line_offsets[b] + j * chunk
+            item_stop[item] = min(line_offsets[b + 1], item_first[item] + chunk)
+            # Room for a few intersections per line and side; busier items are scanned twice.
             buffer_start[item + 1] = buffer_start[item] + 4 * (item_stop[item] - item_first[item]) + 16
             item += 1
-    buffer_anchor = np.empty(buffer_start[-1], dtype=np.int64)
-    buffer_weight = np.empty((buffer_start[-1], k + 1))
-    counts = np.zeros(n_lines, dtype=np.int64)
-    item_total = np.empty(n_items, dtype=np.int64)
+    room = buffer_start[-1]
+    buffer_anchor = np.empty(n_sides * room, dtype=np.int64)
+    buffer_weight = np.empty((n_sides * room, k + 1))
+    counts = np.zeros(n_sides * n_lines, dtype=np.int64)
+    item_total = np.empty((n_items, n_sides), dtype=np.int64)
     for item in numba.prange(n_items):
+        rows = np.empty(n_sides, dtype=np.int64)
+        stops = np.empty(n_sides, dtype=np.int64)
+        for g in range(n_sides):
+            rows[g] = g * room + buffer_start[item]
+            stops[g] = g * room + buffer_start[item + 1]
+        b = item_sample[item]
         item_total[item] = _scan_lines(
-            item_cloud[item],
+            b,
             item_first[item],
             item_stop[item],
             origins,
@@ -488,28 +477,37 @@ def line_intersections(origins, dirs, line_offsets, points, point_offsets, radiu
             neighbors,
             mode,
             eps2,
-            cells,
-            grids,
+            cells[b],
+            grids[b],
             counts,
+            True,
             buffer_anchor,
             buffer_weight,
-            buffer_start[item],
-            buffer_start[item + 1],
+            rows,
+            stops,
         )
-    offsets = np.zeros(n_lines + 1, dtype=np.int64)
+    offsets = np.zeros(n_sides * n_lines + 1, dtype=np.int64)
     offsets[1:] = np.cumsum(counts)
     anchors = np.empty(offsets[-1], dtype=np.int64)
     weights = np.empty((offsets[-1], k + 1))
     for item in numba.prange(n_items):
-        first, stop, total = item_first[item], item_stop[item], item_total[item]
-        out = offsets[first]
-        if total <= buffer_start[item + 1] - buffer_start[item]:
-            begin = buffer_start[item]
-            anchors[out : out + total] = buffer_anchor[begin : begin + total]
-            weights[out : out + total] = buffer_weight[begin : begin + total]
+        first, stop = item_first[item], item_stop[item]
+        fits = True
+        for g in range(n_sides):
+            fits &= item_total[item, g] <= buffer_start[item + 1] - buffer_start[item]
+        if fits:
+            for g in range(n_sides):
+                out, total = offsets[g * n_lines + first], item_total[item, g]
+                begin = g * room + buffer_start[item]
+                anchors[out : out + total] = buffer_anchor[begin : begin + total]
+                weights[out : out + total] = buffer_weight[begin : begin + total]
         else:
+            rows = np.empty(n_sides, dtype=np.int64)
+            for g in range(n_sides):
+                rows[g] = offsets[g * n_lines + first]
+            b = item_sample[item]
             _scan_lines(
-                item_cloud[item],
+                b,
                 first,
                 stop,
                 origins,
@@ -520,13 +518,14 @@ def line_intersections(origins, dirs, line_offsets, points, point_offsets, radiu
                 neighbors,
                 mode,
                 eps2,
-                cells,
-                grids,
+                cells[b],
+                grids[b],
                 counts,
+                False,
                 anchors,
                 weights,
-                out,
-                offsets[stop],
+                rows,
+                rows + item_total[item],
             )
     return offsets, anchors, weights
 

@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import math
 
+import numba
 import numpy as np
 import torch
 
@@ -35,12 +36,49 @@ def _rand(shape: tuple[int, ...], generator: torch.Generator) -> np.ndarray:
     return torch.rand(shape, generator=generator, dtype=torch.float64).numpy()
 
 
+@numba.njit(cache=True, parallel=True)
+def _unit_sphere_rows(u_draws: np.ndarray, alpha_draws: np.ndarray) -> np.ndarray:
+    """``(n, 3)`` points ``S(u, alpha)`` of the unit sphere from ``(n,)`` uniform draws in
+    ``[0, 1)``: ``u = 2 u_draw - 1``, ``alpha = 2 pi alpha_draw``."""
+    n = u_draws.shape[0]
+    out = np.empty((n, 3))
+    for i in numba.prange(n):
+        u = 2.0 * u_draws[i] - 1.0
+        alpha = 2.0 * math.pi * alpha_draws[i]
+        rho = math.sqrt(max(1.0 - u * u, 0.0))
+        out[i, 0] = rho * math.cos(alpha)
+        out[i, 1] = rho * math.sin(alpha)
+        out[i, 2] = u
+    return out
+
+
+@numba.njit(cache=True, parallel=True)
+def _chord_lines(first: np.ndarray, second: np.ndarray, center: np.ndarray, radius: float):
+    """Lines through ``center + radius * first`` towards ``center + radius * second`` (rows of
+    ``(n, 3)`` unit-sphere points): ``origins (n, 3)``, unit ``directions (n, 3)`` and ``(n,)``
+    bool, True where the two points (nearly) coincide and the direction is left undefined."""
+    n = first.shape[0]
+    origins = np.empty((n, 3))
+    dirs = np.empty((n, 3))
+    degenerate = np.empty(n, dtype=np.bool_)
+    for i in numba.prange(n):
+        dx = second[i, 0] - first[i, 0]
+        dy = second[i, 1] - first[i, 1]
+        dz = second[i, 2] - first[i, 2]
+        norm = math.sqrt(dx * dx + dy * dy + dz * dz)
+        degenerate[i] = norm < 1e-12
+        if degenerate[i]:
+            norm = 1.0
+        for a, d in ((0, dx), (1, dy), (2, dz)):
+            origins[i, a] = center[a] + radius * first[i, a]
+            dirs[i, a] = d / norm
+    return origins, dirs, degenerate
+
+
 def _unit_sphere_points(n: int, generator: torch.Generator) -> np.ndarray:
     """``(n, 3)`` points uniform on the unit sphere via the paper's ``(u, alpha)`` parametrisation."""
-    u = 2.0 * _rand((n,), generator) - 1.0
-    alpha = 2.0 * math.pi * _rand((n,), generator)
-    rho = np.sqrt(np.clip(1.0 - u * u, 0.0, None))
-    return np.stack([rho * np.cos(alpha), rho * np.sin(alpha), u], axis=1)
+    u_draws = _rand((n,), generator)
+    return _unit_sphere_rows(u_draws, _rand((n,), generator))
 
 
 def _sphere(center: np.ndarray, radius: float, n: int, generator: torch.Generator) -> tuple[np.ndarray, np.ndarray]:
@@ -48,13 +86,10 @@ def _sphere(center: np.ndarray, radius: float, n: int, generator: torch.Generato
     sphere points, so it stays defined for any radius (a random one for coincident points)."""
     first = _unit_sphere_points(n, generator)
     second = _unit_sphere_points(n, generator)
-    direction = second - first
-    norm = np.linalg.norm(direction, axis=1, keepdims=True)
-    degenerate = norm[:, 0] < 1e-12
+    origins, dirs, degenerate = _chord_lines(first, second, np.asarray(center, dtype=np.float64), float(radius))
     if degenerate.any():
-        direction[degenerate] = _unit_sphere_points(int(degenerate.sum()), generator)
-        norm[degenerate] = 1.0
-    return center + radius * first, direction / norm
+        dirs[degenerate] = _unit_sphere_points(int(degenerate.sum()), generator)
+    return origins, dirs
 
 
 def _hits_box(origins: np.ndarray, dirs: np.ndarray, box_min: np.ndarray, box_max: np.ndarray) -> np.ndarray:

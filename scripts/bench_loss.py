@@ -12,7 +12,10 @@ Each row is one pair (source and target with ``N`` points each, ``L`` lines), ti
 median over ``--repeats`` runs after a warm-up. Every row also times, in the same process, the
 all-pairs compiled reference: a numba loop over all lines (``prange``, all threads) testing
 every point of *one* cloud against every line, with no spatial index; the column
-``ours / all-pairs`` is our forward+backward over *both* clouds divided by it. Peak memory is
+``ours / all-pairs`` is our forward+backward over *both* clouds divided by it (wall clock, the
+configured threads). The columns ``1-thread CPU ms`` time both again on one thread in CPU time of
+the process, alternately, and give their ratio: other jobs on the machine inflate wall times
+and make the first ratio swing, while CPU time on one thread stays nearly steady. Peak memory is
 measured in a fresh subprocess: the largest resident-set size seen during one forward+backward
 (sampled every millisecond from ``/proc/self/statm``) above the resident size just before it,
 after a small warm-up call (on CUDA: the rise of ``torch.cuda.max_memory_allocated``). The
@@ -24,7 +27,8 @@ on a quiet machine and with another process spinning on one core (started and st
 
 ``--profile`` instead profiles ``--repeats`` forward+backward calls per row with ``cProfile`` on one
 thread, timed in CPU time of the process (steady on a machine busy with other jobs, where wall
-times are not), and prints the functions that take the most time of their own.
+times are not), and prints the functions that take the most time of their own, then the time of
+the metric's pieces (candidate search, line sampler, kNN, matching and value, the rest).
 
 OpenMP threads that spin while they wait make every parallel region wait for a descheduled
 thread on a busy machine; the script sets ``OMP_WAIT_POLICY=PASSIVE`` before importing torch
@@ -112,8 +116,9 @@ def _sync(device: str) -> None:
         torch.cuda.synchronize()
 
 
-def time_sparse(src, tgt, options, repeats, device):
-    """Median forward and backward milliseconds of ``src``, ``tgt`` (``(N, 3)`` or ``(B, N, 3)``)."""
+def time_sparse(src, tgt, options, repeats, device, clock=time.perf_counter):
+    """Median forward and backward milliseconds of ``src``, ``tgt`` (``(N, 3)`` or ``(B, N, 3)``),
+    wall-clock time by default (``clock=time.process_time``: CPU time of the process)."""
     batched = src if src.ndim == 3 else src[None]
     target = tgt if tgt.ndim == 3 else tgt[None]
     fwd, bwd = [], []
@@ -121,13 +126,13 @@ def time_sparse(src, tgt, options, repeats, device):
         leaf = batched.clone().requires_grad_(True)
         gen = torch.Generator().manual_seed(rep)
         _sync(device)
-        t0 = time.perf_counter()
+        t0 = clock()
         value = line_intersection_metric(leaf, target, options=options, generator=gen).value.sum()
         _sync(device)
-        t1 = time.perf_counter()
+        t1 = clock()
         value.backward()
         _sync(device)
-        t2 = time.perf_counter()
+        t2 = clock()
         if rep > 0:  # the first run is a warm-up
             fwd.append(1000 * (t1 - t0))
             bwd.append(1000 * (t2 - t1))
@@ -154,8 +159,9 @@ def _all_pairs_candidates(origins, dirs, points, radius):
     return counts
 
 
-def time_all_pairs(src, tgt, n_lines, repeats):
-    """Median milliseconds of the all-pairs compiled candidate search for one cloud (CPU)."""
+def time_all_pairs(src, tgt, n_lines, repeats, clock=time.perf_counter):
+    """Median milliseconds of the all-pairs compiled candidate search for one cloud (CPU), wall
+    clock by default."""
     src_cpu, tgt_cpu = src.cpu(), tgt.cpu()
     origins, dirs = sample_lines(src_cpu, tgt_cpu, n_lines, torch.Generator().manual_seed(0))
     points = src_cpu.double().numpy()
@@ -163,9 +169,9 @@ def time_all_pairs(src, tgt, n_lines, repeats):
     _all_pairs_candidates(origins[:2], dirs[:2], points[:8], radius)  # compile outside the timing
     times = []
     for _ in range(repeats):
-        t0 = time.perf_counter()
+        t0 = clock()
         _all_pairs_candidates(origins, dirs, points, radius)
-        times.append(1000 * (time.perf_counter() - t0))
+        times.append(1000 * (clock() - t0))
     return statistics.median(times)
 
 
@@ -213,6 +219,24 @@ def time_dense(src, tgt, options, device):
     return 1000 * (time.perf_counter() - t0)
 
 
+def one_thread_cpu_ms(src, tgt, options, repeats) -> tuple[float, float]:
+    """Median CPU milliseconds on one thread of our forward+backward and of the all-pairs search
+    (one cloud), measured alternately in this process: a figure that stays steady when other
+    jobs share the cores, where wall times do not."""
+    threads = torch.get_num_threads(), numba.get_num_threads()
+    set_threads(1)
+    try:
+        ours, ref = [], []
+        for _ in range(repeats):
+            fwd, bwd = time_sparse(src, tgt, options, 1, "cpu", clock=time.process_time)
+            ours.append(fwd + bwd)
+            ref.append(time_all_pairs(src, tgt, options.num_lines, 1, clock=time.process_time))
+    finally:
+        torch.set_num_threads(threads[0])
+        numba.set_num_threads(threads[1])
+    return statistics.median(ours), statistics.median(ref)
+
+
 def set_threads(threads: int) -> None:
     """Use ``threads`` threads in torch and in the numba kernels."""
     torch.set_num_threads(threads)
@@ -254,6 +278,14 @@ def batch_table(args) -> None:
                 hog.wait()
 
 
+PROFILE_PIECES = {
+    "line_intersections": "candidate search (line_kernels.line_intersections)",
+    "sample_line_batch": "line sampler (lines.sample_line_batch)",
+    "nearest_neighbors": "kNN (line_kernels.nearest_neighbors)",
+    "welsch_lines": "matching, value and gradient (line_kernels.welsch_lines)",
+}
+
+
 def profile_table(args) -> None:
     """CPU milliseconds per forward+backward call, in total and per function (own time), one thread."""
     set_threads(1)
@@ -280,6 +312,14 @@ def profile_table(args) -> None:
             for (filename, line, name), (_, _, own, _, _) in rows[:12]:
                 where = f"{Path(filename).name}:{line}({name})" if line else name
                 print(f"| {where} | {own * 1000 / calls:.2f} | {own * 1000 / calls / total:.0%} |")
+            pieces = {name: 0.0 for name in PROFILE_PIECES.values()}
+            for (_, _, function), (_, _, _, cumulative, _) in stats.stats.items():
+                if function in PROFILE_PIECES:
+                    pieces[PROFILE_PIECES[function]] += cumulative * 1000 / calls
+            pieces["the rest"] = total - sum(pieces.values())
+            print("\n| piece (cumulative) | ms per call |\n|---|---:|")
+            for piece, ms in pieces.items():
+                print(f"| {piece} | {ms:.2f} |")
 
 
 def main() -> None:
@@ -320,9 +360,9 @@ def main() -> None:
         )
         print(
             "| N | L | forward ms | backward ms | total ms | peak MB | all-pairs ms (one cloud) "
-            "| ours / all-pairs | dense ms | dense / ours |"
+            "| ours / all-pairs | 1-thread CPU ms: ours | all-pairs | ratio | dense ms | dense / ours |"
         )
-        print("|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
+        print("|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
     for n in args.points:
         src, tgt = make_pair(n, args.device)
         for n_lines in args.lines:
@@ -333,6 +373,9 @@ def main() -> None:
             else:
                 peak = cuda_peak_memory_mb(src, tgt, options)
             ref = time_all_pairs(src, tgt, n_lines, min(3, args.repeats))
+            cpu_ours, cpu_ref = (
+                one_thread_cpu_ms(src, tgt, options, args.repeats) if args.device == "cpu" else (math.nan, math.nan)
+            )
             dense = time_dense(src, tgt, options, args.device) if n * n_lines <= args.dense_limit else math.nan
             row = {
                 "n_points": n,
@@ -342,6 +385,9 @@ def main() -> None:
                 "peak_mb": round(peak, 1),
                 "all_pairs_ms": round(ref, 2),
                 "ratio_all_pairs": round((fwd + bwd) / ref, 2),
+                "cpu1_ms": None if math.isnan(cpu_ours) else round(cpu_ours, 2),
+                "all_pairs_cpu1_ms": None if math.isnan(cpu_ref) else round(cpu_ref, 2),
+                "ratio_cpu1": None if math.isnan(cpu_ours) else round(cpu_ours / cpu_ref, 2),
                 "dense_ms": None if math.isnan(dense) else round(dense, 1),
                 "ratio": None if math.isnan(dense) else round(dense / (fwd + bwd), 1),
             }
@@ -353,7 +399,8 @@ def main() -> None:
                 ratio_txt = "—" if row["ratio"] is None else f"{row['ratio']:.0f}x"
                 print(
                     f"| {n} | {n_lines} | {fwd:.1f} | {bwd:.1f} | {fwd + bwd:.1f} | {peak:.0f} | {ref:.1f} "
-                    f"| {row['ratio_all_pairs']:.2f} | {dense_txt} | {ratio_txt} |",
+                    f"| {row['ratio_all_pairs']:.2f} | {cpu_ours:.1f} | {cpu_ref:.1f} | {cpu_ours / cpu_ref:.2f} "
+                    f"| {dense_txt} | {ratio_txt} |",
                     flush=True,
                 )
 

@@ -84,7 +84,7 @@ def test_auto_backend_follows_the_device():
 
 
 def kernel_inputs(mode: int):
-    """Two clouds and their lines in the kernel's flat layout."""
+    """One sample (two clouds sharing 900 lines) in the kernel's flat layout."""
     src, tgt = blob(300, 44), blob(260, 45)
     origins, dirs = lines_for(src, tgt, 900, seed=3)
     points = np.concatenate([src.numpy(), tgt.numpy()])
@@ -99,16 +99,16 @@ def kernel_inputs(mode: int):
     if mode == line_kernels.MODE_CANDIDATES:
         nbr = np.ascontiguousarray(nbr[:, :0])
     return (
-        np.concatenate([origins, origins]),
-        np.concatenate([dirs, dirs]),
-        np.array([0, 900, 1800]),
+        origins,
+        dirs,
+        np.array([0, 900]),
         points,
         np.array([0, 300, 560]),
         np.concatenate(radius),
         nbr,
         mode,
         0.0,
-        np.array([0.2, 0.2]),
+        np.array([0.2]),
     )
 
 

@@ -146,6 +146,28 @@ def cdw_value(poses: Poses, src: np.ndarray, tgt: np.ndarray, nu: np.ndarray, tw
     return welsch_cost(d_xy, nu[:, None]) + two_sided * welsch_cost(d_yx, nu[:, None])
 
 
+def merged_into_earlier(poses: Poses, two_sided: np.ndarray, merged: np.ndarray, distance: float) -> np.ndarray:
+    """Which poses lie within ``distance`` of an earlier, unmerged pose with the same ``two_sided``.
+
+    The gap of two poses is the larger of their rotations' and translations' max-entry
+    differences (a chord, not an angle).
+
+    Args:
+        poses: ``K`` poses; two_sided: ``(K,)`` booleans; merged: ``(K,)`` poses already merged.
+
+    Returns:
+        ``(K,)`` booleans.
+    """
+    rotations, translations = poses
+    gap = np.maximum(
+        np.abs(rotations[:, None] - rotations[None]).max(axis=(2, 3)),
+        np.abs(translations[:, None] - translations[None]).max(axis=2),
+    )
+    same_side = two_sided[:, None] == two_sided[None, :]
+    earlier = np.tri(len(rotations), k=-1, dtype=bool)
+    return ((gap < distance) & same_side & earlier & ~merged[None, :]).any(axis=1)
+
+
 def cdw_irls(
     poses: Poses,
     src: np.ndarray,
@@ -184,8 +206,6 @@ def cdw_irls(
     rotations, translations = (array.copy() for array in poses)
     active = np.ones(len(rotations), dtype=bool)
     merged = np.zeros(len(rotations), dtype=bool)
-    same_side = two_sided[:, None] == two_sided[None, :]
-    earlier = np.tri(len(rotations), k=-1, dtype=bool)
     scale = np.concatenate([np.full(len(src), 1.0 / len(src)), np.full(len(tgt), 1.0 / len(tgt))])
     for _ in range(steps):
         if not active.any():
@@ -203,11 +223,7 @@ def cdw_irls(
         rotations[active], translations[active] = new_r, new_t
         active[np.flatnonzero(active)[moved < tolerance]] = False
         if merge_distance > 0:
-            gap = np.maximum(
-                np.abs(rotations[:, None] - rotations[None]).max(axis=(2, 3)),
-                np.abs(translations[:, None] - translations[None]).max(axis=2),
-            )
-            duplicate = ((gap < merge_distance) & same_side & earlier & ~merged[None, :]).any(axis=1)
+            duplicate = merged_into_earlier((rotations, translations), two_sided, merged, merge_distance)
             merged |= duplicate
             active &= ~duplicate
     return (rotations, translations), merged
@@ -274,8 +290,6 @@ def cdw_adam(
     first, second = np.zeros((count, 6)), np.zeros((count, 6))
     active = np.ones(count, dtype=bool)
     merged = np.zeros(count, dtype=bool)
-    same_side = two_sided[:, None] == two_sided[None, :]
-    earlier = np.tri(count, k=-1, dtype=bool)
     for step in range(steps):
         if not active.any():
             break
@@ -293,11 +307,7 @@ def cdw_adam(
         rotations[active] = turn @ current[0]
         translations[active] = (turn @ current[1][:, :, None])[:, :, 0] + update[:, 3:]
         if merge_distance > 0:
-            gap = np.maximum(
-                np.abs(rotations[:, None] - rotations[None]).max(axis=(2, 3)),
-                np.abs(translations[:, None] - translations[None]).max(axis=2),
-            )
-            duplicate = ((gap < merge_distance) & same_side & earlier & ~merged[None, :]).any(axis=1)
+            duplicate = merged_into_earlier((rotations, translations), two_sided, merged, merge_distance)
             merged |= duplicate
             active &= ~duplicate
     return (rotations, translations), merged

@@ -115,6 +115,26 @@ def test_sweep_handle_reaches_the_term():
     assert loss.parts["alignment"].options.nu0 == 2.0
 
 
+@pytest.mark.parametrize("experiment", ["rpm_ours", "dcp_ours", "fmr_ours"])
+@pytest.mark.parametrize(("variant", "nu0"), [("paper", 0.5), ("authors", 1.0), ("linereg", 0.5)])
+def test_line_variant_switch_brings_its_own_nu0(experiment, variant, nu0):
+    """``loss.variant=...`` is one switch: each preset keeps its Welsch scale unless loss.nu0 is set."""
+    cfg = compose_config(overrides=[f"experiment={experiment}", f"loss.variant={variant}"])
+    options = build_loss(cfg.loss).parts["alignment"].options
+    assert options.nu0 == nu0
+    assert options.sampling == ("authors" if variant == "authors" else "sphere")
+    swept = compose_config(overrides=[f"experiment={experiment}", f"loss.variant={variant}", "loss.nu0=0.3"])
+    assert build_loss(swept.loss).parts["alignment"].options.nu0 == 0.3
+
+
+def test_null_handle_defaults_the_term_in_a_resolved_config():
+    """A resumed run rebuilds its loss from the saved, resolved config: null handles still default."""
+    cfg = compose_config(overrides=["experiment=rpm_ours", "loss.variant=authors"])
+    resolved = OmegaConf.to_container(cfg.loss, resolve=True)
+    assert resolved["nu0"] is None and resolved["terms"]["alignment"]["nu0"] is None
+    assert build_loss(resolved).parts["alignment"].options.nu0 == 1.0
+
+
 def test_unknown_command_line_key_is_rejected():
     with pytest.raises(ConfigCompositionException, match=r"trainer\.batch_sise"):
         compose_config(overrides=["trainer.batch_sise=4"])

@@ -58,6 +58,26 @@ def test_default_config_builds():
     build_components(cfg)
 
 
+
+def test_default_is_the_label_free_easy_pose_recipe():
+    """``python -m train`` (README, docs/results.md): easy poses only, lr 1e-3 decayed, last checkpoint."""
+    cfg = compose_config()
+    curriculum = Curriculum.from_config(cfg.curriculum)
+    assert [(s.name, s.variant, s.subset) for s in curriculum.stages] == [("easy", "easy", None)]
+    assert curriculum.stages[0].learning_rate(cfg.optimizer.lr) == pytest.approx(1e-3)
+    assert cfg.scheduler.name == "cosine" and cfg.trainer.num_points == 256
+    assert cfg.trainer.evaluate_checkpoint == "last"  # no label chooses the checkpoint
+    terms = OmegaConf.to_container(cfg.loss, resolve=True)["terms"]
+    assert terms["outlier"]["weight"] == 1.0 and terms["alignment"]["name"] == "line_intersection"
+
+
+@pytest.mark.parametrize("experiment", EXPERIMENTS)
+def test_experiments_keep_their_schedule_and_checkpoint(experiment):
+    """The embedded default's schedule does not leak into the paper's experiments or the grids."""
+    for extra in ([], ["reproduce=airplane"]):
+        cfg = compose_config(overrides=[f"experiment={experiment}", *extra])
+        assert cfg.scheduler.name == "constant" and cfg.trainer.evaluate_checkpoint == "best"
+
 @pytest.mark.parametrize("experiment", EXPERIMENTS)
 def test_experiment_composes_and_builds(experiment):
     cfg = compose_config(overrides=[f"experiment={experiment}"])
@@ -144,12 +164,12 @@ def test_unknown_keys_in_config_files_give_clear_errors():
     cfg = compose_config()
     with open_dict(cfg):
         cfg.trainer.batch_sise = 4
-        cfg.curriculum.stages.full.epoch = 3
+        cfg.curriculum.stages.easy.epoch = 3
         cfg.loss.terms.alignment.num_line = 10
         cfg.model.neighbours = 3
     with pytest.raises(ValueError, match=r"unknown trainer key\(s\) \['batch_sise'\]"):
         TrainerSettings.from_config(cfg.trainer)
-    with pytest.raises(ValueError, match=r"stage 'full': unknown key\(s\) \['epoch'\]"):
+    with pytest.raises(ValueError, match=r"stage 'easy': unknown key\(s\) \['epoch'\]"):
         Curriculum.from_config(cfg.curriculum)
     with pytest.raises(TypeError, match="num_line"):
         build_loss(cfg.loss)

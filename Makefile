@@ -36,7 +36,7 @@ test-full: setup  ## run every test, the slow ones included
 lint: setup  ## ruff
 	$(VENV)/bin/ruff check .
 
-train: setup  ## train the embedded default: RPM-Net + line loss on procedural shapes (~6 min, 2-core CPU)
+train: setup  ## train the embedded default: RPM-Net + line loss on procedural shapes (~10 min on 2 CPU cores)
 	$(PY) -m train
 
 train-full: setup  ## the paper's RPM-Net + line-loss configuration (python -m train experiment=rpm_ours)

@@ -135,7 +135,8 @@ def build_loss(config: Mapping[str, Any]) -> Loss:
     that terms reference by interpolation (``nu0: ${loss.nu0}``), so that sweeps can write
     ``loss.nu0=...`` whatever the term is called; they are not passed to the builder. A handle
     set to a value but referenced by no term of an OmegaConf config gets a warning (it would
-    change nothing).
+    change nothing). A handle set to null stands for the term's own default: a term argument
+    of the same name that is null is left out (``nu0: null`` gives each line variant its nu0).
 
     Raises:
         linereg.registry.UnknownNameError: an unknown loss name (lists the registered losses).
@@ -164,8 +165,9 @@ def build_loss(config: Mapping[str, Any]) -> Loss:
                     f"loss.{key}={value!r} has no effect: no term of this loss ({names}) uses it", stacklevel=2
                 )
     parts = {}
+    defaulted = {key for key, value in handles.items() if value is None}
     for label, term in resolved["terms"].items():
-        term = dict(term)
+        term = {key: value for key, value in term.items() if not (key in defaulted and value is None)}
         weight = float(term.pop("weight", 1.0))
         parts[label] = (weight, build_loss(term))
     return WeightedSum(parts)

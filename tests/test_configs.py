@@ -58,6 +58,26 @@ def test_default_config_builds():
     build_components(cfg)
 
 
+
+def test_default_is_the_label_free_easy_pose_recipe():
+    """``python -m train`` (README, docs/results.md): easy poses only, lr 1e-3 decayed, last checkpoint."""
+    cfg = compose_config()
+    curriculum = Curriculum.from_config(cfg.curriculum)
+    assert [(s.name, s.variant, s.subset) for s in curriculum.stages] == [("easy", "easy", None)]
+    assert curriculum.stages[0].learning_rate(cfg.optimizer.lr) == pytest.approx(1e-3)
+    assert cfg.scheduler.name == "cosine" and cfg.trainer.num_points == 256
+    assert cfg.trainer.evaluate_checkpoint == "last"  # no label chooses the checkpoint
+    terms = OmegaConf.to_container(cfg.loss, resolve=True)["terms"]
+    assert terms["outlier"]["weight"] == 1.0 and terms["alignment"]["name"] == "line_intersection"
+
+
+@pytest.mark.parametrize("experiment", EXPERIMENTS)
+def test_experiments_keep_their_schedule_and_checkpoint(experiment):
+    """The embedded default's schedule does not leak into the paper's experiments or the grids."""
+    for extra in ([], ["reproduce=airplane"]):
+        cfg = compose_config(overrides=[f"experiment={experiment}", *extra])
+        assert cfg.scheduler.name == "constant" and cfg.trainer.evaluate_checkpoint == "best"
+
 @pytest.mark.parametrize("experiment", EXPERIMENTS)
 def test_experiment_composes_and_builds(experiment):
     cfg = compose_config(overrides=[f"experiment={experiment}"])
@@ -115,6 +135,26 @@ def test_sweep_handle_reaches_the_term():
     assert loss.parts["alignment"].options.nu0 == 2.0
 
 
+@pytest.mark.parametrize("experiment", ["rpm_ours", "dcp_ours", "fmr_ours"])
+@pytest.mark.parametrize(("variant", "nu0"), [("paper", 0.5), ("authors", 1.0), ("linereg", 0.5)])
+def test_line_variant_switch_brings_its_own_nu0(experiment, variant, nu0):
+    """``loss.variant=...`` is one switch: each preset keeps its Welsch scale unless loss.nu0 is set."""
+    cfg = compose_config(overrides=[f"experiment={experiment}", f"loss.variant={variant}"])
+    options = build_loss(cfg.loss).parts["alignment"].options
+    assert options.nu0 == nu0
+    assert options.sampling == ("authors" if variant == "authors" else "sphere")
+    swept = compose_config(overrides=[f"experiment={experiment}", f"loss.variant={variant}", "loss.nu0=0.3"])
+    assert build_loss(swept.loss).parts["alignment"].options.nu0 == 0.3
+
+
+def test_null_handle_defaults_the_term_in_a_resolved_config():
+    """A resumed run rebuilds its loss from the saved, resolved config: null handles still default."""
+    cfg = compose_config(overrides=["experiment=rpm_ours", "loss.variant=authors"])
+    resolved = OmegaConf.to_container(cfg.loss, resolve=True)
+    assert resolved["nu0"] is None and resolved["terms"]["alignment"]["nu0"] is None
+    assert build_loss(resolved).parts["alignment"].options.nu0 == 1.0
+
+
 def test_unknown_command_line_key_is_rejected():
     with pytest.raises(ConfigCompositionException, match=r"trainer\.batch_sise"):
         compose_config(overrides=["trainer.batch_sise=4"])
@@ -124,12 +164,12 @@ def test_unknown_keys_in_config_files_give_clear_errors():
     cfg = compose_config()
     with open_dict(cfg):
         cfg.trainer.batch_sise = 4
-        cfg.curriculum.stages.full.epoch = 3
+        cfg.curriculum.stages.easy.epoch = 3
         cfg.loss.terms.alignment.num_line = 10
         cfg.model.neighbours = 3
     with pytest.raises(ValueError, match=r"unknown trainer key\(s\) \['batch_sise'\]"):
         TrainerSettings.from_config(cfg.trainer)
-    with pytest.raises(ValueError, match=r"stage 'full': unknown key\(s\) \['epoch'\]"):
+    with pytest.raises(ValueError, match=r"stage 'easy': unknown key\(s\) \['epoch'\]"):
         Curriculum.from_config(cfg.curriculum)
     with pytest.raises(TypeError, match="num_line"):
         build_loss(cfg.loss)

@@ -8,6 +8,7 @@ with ``torch.load(weights_only=True)``; its ``format`` is ``"linereg-checkpoint"
 
 from __future__ import annotations
 
+import json
 import pickle
 from pathlib import Path
 from typing import Any
@@ -25,9 +26,13 @@ class CorruptCheckpointError(ValueError):
     """A checkpoint file exists but cannot be read (truncated, empty or not a torch file)."""
 
 
-def find_checkpoint(path: str | Path, prefer: tuple[str, ...] = (BEST, LAST)) -> Path:
+def find_checkpoint(path: str | Path, prefer: tuple[str, ...] | None = None) -> Path:
     """The checkpoint file named by ``path``: the file itself, or in a run folder the first of
     ``prefer`` found in ``<run>/checkpoints/`` (or directly in the folder).
+
+    With ``prefer=None`` a run folder gives the checkpoint its own final evaluation used (the
+    ``evaluated_checkpoint`` that ``python -m train`` records in ``<run>/metrics.json``: ``last.pt``
+    when ``trainer.evaluate_checkpoint=last``), else ``best.pt``, else ``last.pt``.
 
     Raises:
         FileNotFoundError: nothing suitable exists.
@@ -36,12 +41,25 @@ def find_checkpoint(path: str | Path, prefer: tuple[str, ...] = (BEST, LAST)) ->
     if path.is_file():
         return path
     if path.is_dir():
+        if prefer is None:
+            prefer = (*_evaluated_name(path), BEST, LAST)
         for folder in (path / CHECKPOINT_DIR, path):
             for name in prefer:
                 if (folder / name).is_file():
                     return folder / name
-        raise FileNotFoundError(f"no checkpoint ({' or '.join(prefer)}) in {path} or {path / CHECKPOINT_DIR}")
+        raise FileNotFoundError(
+            f"no checkpoint ({' or '.join(dict.fromkeys(prefer))}) in {path} or {path / CHECKPOINT_DIR}"
+        )
     raise FileNotFoundError(f"checkpoint not found: {path}")
+
+
+def _evaluated_name(run: Path) -> tuple[str, ...]:
+    """``(name,)`` of the checkpoint recorded in ``<run>/metrics.json``, or ``()`` when there is none."""
+    try:
+        recorded = json.loads((run / "metrics.json").read_text())["evaluated_checkpoint"]["file"]
+    except (OSError, ValueError, KeyError, TypeError):
+        return ()
+    return (recorded,) if isinstance(recorded, str) and recorded in (BEST, LAST) else ()
 
 
 def load_checkpoint(path: str | Path, map_location: str | torch.device = "cpu") -> dict[str, Any]:

@@ -116,7 +116,7 @@ class LearnedRegistration:
     missing), and the model's final estimate is mapped back to the original frames.
 
     Args:
-        checkpoint: a checkpoint file or a run folder (``best.pt`` preferred).
+        checkpoint: a checkpoint file or a run folder (the checkpoint the run evaluated, else ``best.pt``).
         device: torch device of the model.
         num_points: points per cloud fed to the model (``None``: the run's ``trainer.num_points``).
         refine: also run the default solver from the model's estimate (a single start:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import os
 import random
 import re
@@ -232,6 +233,17 @@ def test_find_checkpoint_in_a_run_folder(tmp_path):
         checkpoint.save_checkpoint({}, tmp_path / "checkpoints" / name)
     assert checkpoint.find_checkpoint(tmp_path).name == "best.pt"
     assert checkpoint.find_checkpoint(tmp_path, prefer=("last.pt",)).name == "last.pt"
+
+
+def test_find_checkpoint_follows_the_runs_own_evaluation(tmp_path):
+    for name in ("last.pt", "best.pt"):
+        checkpoint.save_checkpoint({}, tmp_path / "checkpoints" / name)
+    metrics = tmp_path / "metrics.json"
+    metrics.write_text(json.dumps({"evaluated_checkpoint": {"file": "last.pt", "epoch": 6}}))
+    assert checkpoint.find_checkpoint(tmp_path).name == "last.pt"
+    assert checkpoint.find_checkpoint(tmp_path, prefer=("best.pt",)).name == "best.pt"
+    metrics.write_text("{not json")
+    assert checkpoint.find_checkpoint(tmp_path).name == "best.pt"
 
 
 def test_rng_state_round_trip(tmp_path):

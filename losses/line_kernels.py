@@ -5,8 +5,8 @@ The kernels decide *which* points form each intersection and *which* intersectio
 paper's per-line reduction and, since the weights are constants, its gradient w.r.t. every point
 in closed form; the loss wraps it in a ``torch.autograd.Function``. For the other settings the
 loss gathers the points with torch and autograd differentiates the value. The k nearest
-neighbours of the points come from :func:`nearest_neighbors` (a uniform grid, searched ring by
-ring).
+neighbours of the points and their radii come from :func:`cloud_neighborhoods` (a uniform grid,
+searched ring by ring).
 
 Candidate search, without ever testing all point-line pairs:
 
@@ -76,6 +76,28 @@ def grid_cell_size(points, radius, cell_factor, n_points):
     floor = max((volume / cap) ** (1.0 / 3.0), longest / 1024.0)
     factor = cell_factor * (n_points / 1024.0) ** (1.0 / 6.0)
     return max(factor * np.median(radius), floor, np.finfo(np.float64).tiny)
+
+
+@numba.njit(cache=True)
+def sample_cell_sizes(points, point_offsets, radius, n_samples, cell_factor):
+    """``(B,)`` :func:`grid_cell_size` of every sample, its clouds (``G`` sides, side-major as in
+    :func:`line_intersections`) together; ``n_points`` is the mean size of its clouds."""
+    n_sides = (point_offsets.shape[0] - 1) // n_samples
+    cells = np.empty(n_samples)
+    for b in range(n_samples):
+        size = 0
+        for g in range(n_sides):
+            size += point_offsets[g * n_samples + b + 1] - point_offsets[g * n_samples + b]
+        sample_points = np.empty((size, 3))
+        sample_radius = np.empty(size)
+        row = 0
+        for g in range(n_sides):
+            for i in range(point_offsets[g * n_samples + b], point_offsets[g * n_samples + b + 1]):
+                sample_points[row] = points[i]
+                sample_radius[row] = radius[i]
+                row += 1
+        cells[b] = grid_cell_size(sample_points, sample_radius, cell_factor, size / n_sides)
+    return cells
 
 
 @numba.njit(cache=True, inline="always")
@@ -658,7 +680,7 @@ def _closest_pairs(offsets, line_offsets, n_samples, hit_points, keep, pair_offs
     return src_hit, tgt_hit, dist_sq
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, parallel=True)
 def welsch_lines(
     offsets,
     anchors,
@@ -705,9 +727,12 @@ def welsch_lines(
     value = np.zeros(n_samples)
     scale = np.zeros(n_samples)
     counts = np.zeros((n_samples, 5), dtype=np.int64)
-    hit_grad = np.zeros((anchors.shape[0], 3))
+    two_c = np.ones(n_samples)
+    per_line = np.zeros(n_samples)
+    line_sample = np.empty(line_offsets[n_samples], dtype=np.int64)
     for b in range(n_samples):
         l0, l1 = line_offsets[b], line_offsets[b + 1]
+        line_sample[l0:l1] = b
         for line in range(l0, l1):
             counts[b, 0] += keep[line]
             counts[b, 1] += ns[line] > 0
@@ -723,26 +748,34 @@ def welsch_lines(
             middle = (q1 - q0 - 1) // 2
             lower_median = np.partition(dist_sq[q0:q1], middle)[middle]
             scale[b] = nu0 * (lower_median if squared_input else math.sqrt(lower_median))
-        two_c = max(2.0 * (scale[b] if squared_input else scale[b] * scale[b]), tiny)
-        per_line = 1.0 / max(counts[b, 0], 1)
+        two_c[b] = max(2.0 * (scale[b] if squared_input else scale[b] * scale[b]), tiny)
+        per_line[b] = 1.0 / max(counts[b, 0], 1)
+    # Lines in parallel: each intersection belongs to one line, so each gradient row has one writer.
+    line_total = np.zeros(line_offsets[n_samples])
+    hit_grad = np.zeros((anchors.shape[0], 3))
+    for line in numba.prange(line_offsets[n_samples]):
+        b = line_sample[line]
+        w = math.exp(-abs(ns[line] - nt[line]) / 2.0) if line_weight else 1.0
         total = 0.0
-        for line in range(l0, l1):
-            w = math.exp(-abs(ns[line] - nt[line]) / 2.0) if line_weight else 1.0
-            for p in range(pair_offsets[line], pair_offsets[line + 1]):
-                near = math.exp(-dist_sq[p] / two_c)
-                total += w * (1.0 - near)
-                slope = per_line * w * near * 2.0 / two_c
-                s, g = src_hit[p], tgt_hit[p]
-                for a in range(3):
-                    step = slope * (hit_points[s, a] - hit_points[g, a])
-                    hit_grad[s, a] += step
-                    hit_grad[g, a] -= step
-        value[b] = total * per_line
-    grad = np.zeros(points.shape)
-    for h in range(anchors.shape[0]):
-        for m in range(members.shape[1]):
+        for p in range(pair_offsets[line], pair_offsets[line + 1]):
+            near = math.exp(-dist_sq[p] / two_c[b])
+            total += w * (1.0 - near)
+            slope = per_line[b] * w * near * 2.0 / two_c[b]
+            s, g = src_hit[p], tgt_hit[p]
             for a in range(3):
-                grad[members[h, m], a] += weights[h, m] * hit_grad[h, a]
+                step = slope * (hit_points[s, a] - hit_points[g, a])
+                hit_grad[s, a] += step
+                hit_grad[g, a] -= step
+        line_total[line] = total
+    for b in range(n_samples):
+        value[b] = line_total[line_offsets[b] : line_offsets[b + 1]].sum() * per_line[b]
+    # Clouds in parallel: the members of an intersection are points of its own cloud.
+    grad = np.zeros(points.shape)
+    for c in numba.prange(point_offsets.shape[0] - 1):
+        for h in range(offsets[line_offsets[c]], offsets[line_offsets[c + 1]]):
+            for m in range(members.shape[1]):
+                for a in range(3):
+                    grad[members[h, m], a] += weights[h, m] * hit_grad[h, a]
     return value, grad, scale, counts
 
 
@@ -841,22 +874,54 @@ def _cloud_knn(points, k, out_index, out_dist):
             out_dist[i, m] = math.sqrt(best[m])
 
 
+@numba.njit(cache=True)
+def _cloud_radius(points, index, dist, triplet, delta_factor, out):
+    """Cylinder radius ``delta`` of every point of one cloud from its ``k`` nearest neighbours:
+    ``delta_factor`` times the cloud's mean neighbour distance ``d_nei`` (one value for the
+    cloud), or for ``triplet`` the locally adaptive ``delta_factor`` times the mean pairwise
+    spacing of the point and its neighbours."""
+    n, k = index.shape
+    if not triplet:
+        total = 0.0
+        for i in range(n):
+            total += dist[i].sum() / k
+        out[:] = delta_factor * (total / n)
+        return
+    pairs = k * (k + 1) / 2
+    for i in range(n):
+        spacing = dist[i].sum()
+        for a in range(k):
+            for b in range(a + 1, k):
+                d = 0.0
+                for axis in range(3):
+                    diff = points[index[i, a], axis] - points[index[i, b], axis]
+                    d += diff * diff
+                spacing += math.sqrt(d)
+        out[i] = delta_factor * spacing / pairs
+
+
 @numba.njit(cache=True, parallel=True)
-def nearest_neighbors(points, point_offsets, k):
-    """The ``k`` nearest other points of every point, cloud by cloud (clouds in parallel).
+def cloud_neighborhoods(points, point_offsets, k, triplet, delta_factor):
+    """The ``k`` nearest other points of every point and its cylinder radius, cloud by cloud
+    (clouds in parallel).
 
     Args:
         points: ``(N, 3)`` float64, the clouds back to back.
         point_offsets: ``(C+1,)`` int64 point range of each cloud (each with more than ``k`` points).
         k: neighbours per point.
+        triplet: radius of ``MODE_TRIPLET`` (per point) instead of the per-cloud ``delta``.
+        delta_factor: ``delta = delta_factor * d_nei`` (see :func:`_cloud_radius`).
 
     Returns:
         ``index (N, k)`` int64 cloud-local indices and ``dist (N, k)`` float64 Euclidean
-        distances, ascending; a point's own index is never among its neighbours, its duplicates are.
+        distances, ascending (a point's own index is never among its neighbours, its duplicates
+        are), and ``radius (N,)`` float64.
     """
     index = np.empty((points.shape[0], k), dtype=np.int64)
     dist = np.empty((points.shape[0], k))
+    radius = np.empty(points.shape[0])
     for c in numba.prange(point_offsets.shape[0] - 1):
         p0, p1 = point_offsets[c], point_offsets[c + 1]
         _cloud_knn(points[p0:p1], k, index[p0:p1], dist[p0:p1])
-    return index, dist
+        _cloud_radius(points[p0:p1], index[p0:p1], dist[p0:p1], triplet, delta_factor, radius[p0:p1])
+    return index, dist, radius

@@ -14,7 +14,6 @@ from linereg.losses.line_intersection import (
     FusedLineValue,
     LineMetricOptions,
     _checked_inputs,
-    _cloud_setups,
     _fused_values,
     _line_batch,
     _line_pairs,
@@ -92,7 +91,7 @@ def test_fused_gradient_passes_gradcheck_for_a_fixed_plan(intersection):
     tgt = torch.stack([blob(70, 9)])
     work = _checked_inputs(src, tgt, None, None, options)
     lines = _line_batch(*work, options, torch.Generator().manual_seed(1), None)
-    plan = _numba_plan(*_cloud_setups(*work, options, "numba"), lines, options)
+    plan = _numba_plan(*work, lines, options)
     assert len(plan.anchors) > 40
 
     def value(s, t):
@@ -134,7 +133,7 @@ def test_grid_knn_matches_brute_force_on_awkward_clouds():
     ]
     offsets = np.concatenate([[0], np.cumsum([len(c) for c in clouds])])
     for k in (1, 2, 3):
-        index, dist = line_kernels.nearest_neighbors(np.concatenate(clouds), offsets, k)
+        index, dist, _ = line_kernels.cloud_neighborhoods(np.concatenate(clouds), offsets, k, False, 1.0)
         for c, cloud in enumerate(clouds):
             ref_dist, ref_index, distinct = brute_force_knn(cloud, k)
             rows = slice(offsets[c], offsets[c + 1])

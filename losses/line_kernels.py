@@ -768,7 +768,10 @@ def welsch_lines(
                 hit_grad[g, a] -= step
         line_total[line] = total
     for b in range(n_samples):
-        value[b] = line_total[line_offsets[b] : line_offsets[b + 1]].sum() * per_line[b]
+        total = 0.0  # a plain loop: an array sum here would become a parallel reduction
+        for line in range(line_offsets[b], line_offsets[b + 1]):
+            total += line_total[line]
+        value[b] = total * per_line[b]
     # Clouds in parallel: the members of an intersection are points of its own cloud.
     grad = np.zeros(points.shape)
     for c in numba.prange(point_offsets.shape[0] - 1):

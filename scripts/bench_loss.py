@@ -281,7 +281,7 @@ def batch_table(args) -> None:
 PROFILE_PIECES = {
     "line_intersections": "candidate search (line_kernels.line_intersections)",
     "sample_line_batch": "line sampler (lines.sample_line_batch)",
-    "nearest_neighbors": "kNN (line_kernels.nearest_neighbors)",
+    "cloud_neighborhoods": "kNN and radii (line_kernels.cloud_neighborhoods)",
     "welsch_lines": "matching, value and gradient (line_kernels.welsch_lines)",
 }
 

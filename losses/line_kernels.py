@@ -121,8 +121,8 @@ def build_dilated_grid(points, radius, starts, stops, cell):
     ``radius``-ball overlaps the cell, in cloud order then row order.
 
     Returns ``(grid_min (3,), dims (3,) int64, cell_start (C+1,), entry_rows (S,) int64,
-    entry_xyzr (S, 4))``: the row of each entry in ``points`` and its coordinates and squared
-    radius, stored in cell order so that a line walk reads memory sequentially.
+    entry_xyzr (4, S))``: the row of each entry in ``points`` and its coordinates and squared
+    radius (one row each), stored in cell order so that a line walk reads memory sequentially.
     """
     grid_min = np.full(3, np.inf)
     grid_max = np.full(3, -np.inf)
@@ -148,7 +148,7 @@ def build_dilated_grid(points, radius, starts, stops, cell):
     cell_start = np.cumsum(counts)
     fill = cell_start[:-1].copy()
     entry_rows = np.empty(cell_start[-1], dtype=np.int64)
-    entry_xyzr = np.empty((cell_start[-1], 4))
+    entry_xyzr = np.empty((4, cell_start[-1]))
     for g in range(starts.shape[0]):
         for i in range(starts[g], stops[g]):
             lx, hx, ly, hy, lz, hz = _ball_cells(points, radius, i, grid_min, dims, cell)
@@ -159,10 +159,10 @@ def build_dilated_grid(points, radius, starts, stops, cell):
                         s = fill[c]
                         fill[c] = s + 1
                         entry_rows[s] = i
-                        entry_xyzr[s, 0] = points[i, 0]
-                        entry_xyzr[s, 1] = points[i, 1]
-                        entry_xyzr[s, 2] = points[i, 2]
-                        entry_xyzr[s, 3] = radius[i] * radius[i]
+                        entry_xyzr[0, s] = points[i, 0]
+                        entry_xyzr[1, s] = points[i, 1]
+                        entry_xyzr[2, s] = points[i, 2]
+                        entry_xyzr[3, s] = radius[i] * radius[i]
     return grid_min, dims, cell_start, entry_rows, entry_xyzr
 
 
@@ -241,13 +241,15 @@ def _axis_walk(o, u, lo, cell, dim, t_in, t_out):
 
 
 @numba.njit(cache=True, inline="always")
-def _collect_candidates(ox, oy, oz, ux, uy, uz, eps2, grid_min, dims, cell, cell_start, entry_xyzr, found):
+def _collect_candidates(ox, oy, oz, ux, uy, uz, eps2, grid_min, dims, cell, cell_start, entry_xyzr, flags, found):
     """Walk the line ``o + t u`` through a dilated grid (3D-DDA) and write to ``found`` the
     entries within their radius of it, in walk order; return their number.
 
     A point is stored in every cell its ball overlaps, so it is kept only in the cell whose
-    parameter interval holds its foot point's ``t`` (each point at most once). The test is
-    branch-free: every tested entry is written, and the count only advances past candidates.
+    parameter interval holds its foot point's ``t`` (each point at most once). The test has no
+    branch: a cell's entries (coordinates and squared radii stored as rows, ``entry_xyzr (4, S)``)
+    are tested in one loop into ``flags`` (``(S,)`` bool scratch), which the compiler vectorises,
+    then compacted into ``found``.
     """
     nx, ny, nz = dims[0], dims[1], dims[2]
     t0, t1 = _slab(ox, ux, grid_min[0], grid_min[0] + nx * cell, -np.inf, np.inf)
@@ -275,14 +277,22 @@ def _collect_candidates(ox, oy, oz, ux, uy, uz, eps2, grid_min, dims, cell, cell
     t_enter = -np.inf
     for _ in range(steps_x + steps_y + steps_z + 1):
         t_exit = min(tmx, min(tmy, tmz))
-        for s in range(cell_start[c], cell_start[c + 1]):
-            dx = entry_xyzr[s, 0] - ox
-            dy = entry_xyzr[s, 1] - oy
-            dz = entry_xyzr[s, 2] - oz
+        start = cell_start[c]
+        size = cell_start[c + 1] - start
+        xs = entry_xyzr[0, start : start + size]
+        ys = entry_xyzr[1, start : start + size]
+        zs = entry_xyzr[2, start : start + size]
+        r2s = entry_xyzr[3, start : start + size]
+        for j in range(size):
+            dx = xs[j] - ox
+            dy = ys[j] - oy
+            dz = zs[j] - oz
             t = dx * ux + dy * uy + dz * uz
             d2 = max(dx * dx + dy * dy + dz * dz - t * t, 0.0)
-            found[count] = s
-            count += (d2 + eps2 < entry_xyzr[s, 3]) & (t >= t_enter) & (t < t_exit)
+            flags[j] = (d2 + eps2 < r2s[j]) & (t >= t_enter) & (t < t_exit)
+        for j in range(size):
+            found[count] = start + j
+            count += flags[j]
         t_enter = t_exit
         if tmx == t_exit:
             c += stride_x
@@ -334,6 +344,7 @@ def _scan_lines(
     n_lines = origins.shape[0]
     k = neighbors.shape[1]
     found = np.empty(entry_rows.shape[0] + 1, dtype=np.int64)
+    flags = np.empty(entry_rows.shape[0], dtype=np.bool_)
     near = np.empty(k)
     row = out_row.copy()
     cloud_start = np.empty(n_sides, dtype=np.int64)
@@ -345,7 +356,7 @@ def _scan_lines(
         ox, oy, oz = origins[line, 0], origins[line, 1], origins[line, 2]
         ux, uy, uz = dirs[line, 0], dirs[line, 1], dirs[line, 2]
         n_found = _collect_candidates(
-            ox, oy, oz, ux, uy, uz, eps2, grid_min, dims, cell, cell_start, entry_xyzr, found
+            ox, oy, oz, ux, uy, uz, eps2, grid_min, dims, cell, cell_start, entry_xyzr, flags, found
         )
         # The neighbour test and the weights of each candidate.
         for j in range(n_found):

@@ -418,6 +418,20 @@ def _clamped_d2(points, i, ox, oy, oz, ux, uy, uz):
 
 
 @numba.njit(cache=True)
+def _float_zeros(shape):
+    """``np.zeros(shape)``, compiled apart: written inside a ``parallel=True`` kernel, an
+    allocation (or any array expression) becomes a parallel region of its own, and each region
+    wakes the threads; the kernels keep parallel regions to their ``prange`` loops."""
+    return np.zeros(shape)
+
+
+@numba.njit(cache=True)
+def _int_zeros(shape):
+    """``np.zeros(shape, int64)``, compiled apart (see :func:`_float_zeros`)."""
+    return np.zeros(shape, dtype=np.int64)
+
+
+@numba.njit(cache=True)
 def _sample_grids(points, point_offsets, radius, cells):
     """The dilated grid of every sample (its clouds together), as a list."""
     n_samples = cells.shape[0]
@@ -472,11 +486,13 @@ def line_intersections(origins, dirs, line_offsets, points, point_offsets, radiu
     items_per_sample = np.empty(n_samples, dtype=np.int64)
     for b in range(n_samples):
         items_per_sample[b] = (line_offsets[b + 1] - line_offsets[b] + chunk - 1) // chunk
-    n_items = items_per_sample.sum()
+    n_items = 0
+    for b in range(n_samples):
+        n_items += items_per_sample[b]
     item_sample = np.empty(n_items, dtype=np.int64)
     item_first = np.empty(n_items, dtype=np.int64)
     item_stop = np.empty(n_items, dtype=np.int64)
-    buffer_start = np.zeros(n_items + 1, dtype=np.int64)
+    buffer_start = _int_zeros(n_items + 1)
     item = 0
     for b in range(n_samples):
         for j in range(items_per_sample[b]):
@@ -489,7 +505,7 @@ def line_intersections(origins, dirs, line_offsets, points, point_offsets, radiu
     room = buffer_start[-1]
     buffer_anchor = np.empty(n_sides * room, dtype=np.int64)
     buffer_weight = np.empty((n_sides * room, k + 1))
-    counts = np.zeros(n_sides * n_lines, dtype=np.int64)
+    counts = _int_zeros(n_sides * n_lines)
     item_total = np.empty((n_items, n_sides), dtype=np.int64)
     for item in numba.prange(n_items):
         rows = np.empty(n_sides, dtype=np.int64)
@@ -519,8 +535,10 @@ def line_intersections(origins, dirs, line_offsets, points, point_offsets, radiu
             rows,
             stops,
         )
-    offsets = np.zeros(n_sides * n_lines + 1, dtype=np.int64)
-    offsets[1:] = np.cumsum(counts)
+    offsets = np.empty(n_sides * n_lines + 1, dtype=np.int64)
+    offsets[0] = 0
+    for line in range(n_sides * n_lines):
+        offsets[line + 1] = offsets[line] + counts[line]
     anchors = np.empty(offsets[-1], dtype=np.int64)
     weights = np.empty((offsets[-1], k + 1))
     for item in numba.prange(n_items):
@@ -625,7 +643,7 @@ def _hit_points(offsets, anchors, weights, line_offsets, points, point_offsets, 
     neighbours), and ``(H, k+1)`` the rows of ``points`` of the members; clouds in parallel."""
     n_hits = anchors.shape[0]
     k = neighbors.shape[1]
-    hit_points = np.zeros((n_hits, 3))
+    hit_points = np.empty((n_hits, 3))
     members = np.empty((n_hits, k + 1), dtype=np.int64)
     for c in numba.prange(point_offsets.shape[0] - 1):
         p0 = point_offsets[c]
@@ -634,9 +652,11 @@ def _hit_points(offsets, anchors, weights, line_offsets, points, point_offsets, 
             members[h, 0] = anchor
             for m in range(k):
                 members[h, m + 1] = p0 + neighbors[anchor, m]
-            for m in range(k + 1):
-                for a in range(3):
-                    hit_points[h, a] += weights[h, m] * points[members[h, m], a]
+            for a in range(3):
+                total = 0.0
+                for m in range(k + 1):
+                    total += weights[h, m] * points[members[h, m], a]
+                hit_points[h, a] = total
     return hit_points, members
 
 
@@ -735,16 +755,16 @@ def welsch_lines(
     hit_points, members = _hit_points(offsets, anchors, weights, line_offsets, points, point_offsets, neighbors)
     ns, nt, keep, pair_offsets = _pair_slots(offsets, line_offsets, n_samples, max_hits)
     src_hit, tgt_hit, dist_sq = _closest_pairs(offsets, line_offsets, n_samples, hit_points, keep, pair_offsets)
-    value = np.zeros(n_samples)
-    scale = np.zeros(n_samples)
-    counts = np.zeros((n_samples, 5), dtype=np.int64)
-    two_c = np.ones(n_samples)
-    per_line = np.zeros(n_samples)
+    value = _float_zeros(n_samples)
+    scale = _float_zeros(n_samples)
+    counts = _int_zeros((n_samples, 5))
+    two_c = _float_zeros(n_samples)
+    per_line = _float_zeros(n_samples)
     line_sample = np.empty(line_offsets[n_samples], dtype=np.int64)
     for b in range(n_samples):
         l0, l1 = line_offsets[b], line_offsets[b + 1]
-        line_sample[l0:l1] = b
         for line in range(l0, l1):
+            line_sample[line] = b
             counts[b, 0] += keep[line]
             counts[b, 1] += ns[line] > 0
             counts[b, 2] += nt[line] > 0
@@ -762,8 +782,8 @@ def welsch_lines(
         two_c[b] = max(2.0 * (scale[b] if squared_input else scale[b] * scale[b]), tiny)
         per_line[b] = 1.0 / max(counts[b, 0], 1)
     # Lines in parallel: each intersection belongs to one line, so each gradient row has one writer.
-    line_total = np.zeros(line_offsets[n_samples])
-    hit_grad = np.zeros((anchors.shape[0], 3))
+    line_total = np.empty(line_offsets[n_samples])
+    hit_grad = _float_zeros((anchors.shape[0], 3))
     for line in numba.prange(line_offsets[n_samples]):
         b = line_sample[line]
         w = math.exp(-abs(ns[line] - nt[line]) / 2.0) if line_weight else 1.0
@@ -784,7 +804,7 @@ def welsch_lines(
             total += line_total[line]
         value[b] = total * per_line[b]
     # Clouds in parallel: the members of an intersection are points of its own cloud.
-    grad = np.zeros(points.shape)
+    grad = _float_zeros(points.shape)
     for c in numba.prange(point_offsets.shape[0] - 1):
         for h in range(offsets[line_offsets[c]], offsets[line_offsets[c + 1]]):
             for m in range(members.shape[1]):

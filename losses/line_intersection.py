@@ -284,38 +284,18 @@ def _cylinder_radius(
     return (options.delta_factor * mean)[:, None].expand(valid.shape)
 
 
-def _neighbors(
-    clouds: list[torch.Tensor], lengths: list[torch.Tensor], k: int, backend: str
+def _torch_neighbors(
+    clouds: list[torch.Tensor], lengths: list[torch.Tensor], k: int
 ) -> list[tuple[torch.Tensor, torch.Tensor, torch.Tensor]]:
     """Per side, ``valid (B, N)``, ``neighbors (B, N, k)`` (sample-local) and their
-    ``distances (B, N, k)`` of ``clouds[side] (B, N, 3)`` with ``lengths[side] (B,)`` valid points:
-    a grid search per cloud for ``numba`` (:func:`linereg.losses.line_kernels.nearest_neighbors`,
-    one call for every cloud of both sides), a masked brute-force search for ``torch``; rows of
-    padding points are zero for ``numba``."""
+    ``distances (B, N, k)`` of ``clouds[side] (B, N, 3)`` with ``lengths[side] (B,)`` valid points,
+    by a masked brute-force search on the clouds' device (the torch backend; the numba backend's
+    twin is :func:`linereg.losses.line_kernels.cloud_neighborhoods`)."""
     valids = [
         torch.arange(cloud.shape[1], device=cloud.device)[None] < side_lengths.to(cloud.device)[:, None]
         for cloud, side_lengths in zip(clouds, lengths, strict=True)
     ]
-    if backend == "torch":
-        return [(valid, *line_torch.masked_knn(cloud, valid, k)) for cloud, valid in zip(clouds, valids, strict=True)]
-    counts = [c for side_lengths in lengths for c in side_lengths.tolist()]
-    offsets = np.concatenate([[0], np.cumsum(counts)])
-    stacked = np.concatenate([cloud[valid].numpy() for cloud, valid in zip(clouds, valids, strict=True)])
-    found, found_dist = line_kernels.nearest_neighbors(stacked, offsets, k)
-    result, start = [], 0
-    for cloud, valid in zip(clouds, valids, strict=True):
-        batch, n = cloud.shape[:2]
-        stop = start + int(valid.sum())
-        side_found, side_dist = torch.from_numpy(found[start:stop]), torch.from_numpy(found_dist[start:stop])
-        if stop - start == batch * n:
-            result.append((valid, side_found.view(batch, n, k), side_dist.view(batch, n, k)))
-        else:
-            idx = torch.zeros(batch, n, k, dtype=torch.int64)
-            dist = torch.zeros(batch, n, k, dtype=torch.float64)
-            idx[valid], dist[valid] = side_found, side_dist
-            result.append((valid, idx, dist))
-        start = stop
-    return result
+    return [(valid, *line_torch.masked_knn(cloud, valid, k)) for cloud, valid in zip(clouds, valids, strict=True)]
 
 
 @dataclass
@@ -341,88 +321,91 @@ class KernelPlan:
 
 def _stacked_points(clouds: list[torch.Tensor], lengths: np.ndarray) -> np.ndarray:
     """``(sum lengths, 3)`` float64 numpy: the valid rows of every sample of ``clouds``
-    (``[src (B, N, 3), tgt (B, M, 3)]``), in the plan's cloud order."""
+    (``[src (B, N, 3), tgt (B, M, 3)]``, ``lengths (2 B,)``), in the plan's cloud order."""
     batch = clouds[0].shape[0]
-    rows = [cloud[b, : lengths[side * batch + b]] for side, cloud in enumerate(clouds) for b in range(batch)]
+    rows = []
+    for side, cloud in enumerate(clouds):
+        side_lengths = lengths[side * batch : (side + 1) * batch]
+        if (side_lengths == cloud.shape[1]).all():
+            rows.append(cloud.reshape(-1, 3))
+        else:
+            rows.extend(cloud[b, : side_lengths[b]] for b in range(batch))
     return torch.cat(rows).detach().to("cpu", torch.float64).numpy()
 
 
-def _numba_plan(
-    clouds: list[torch.Tensor], valids: list[torch.Tensor], radii, neighbors, lines: LineBatch, options
-) -> KernelPlan:
-    """Intersections of the lines with every cloud of both sides, one kernel call for all (each
-    sample's lines walk one grid holding both of its clouds).
+def _numba_plan(src, tgt, src_lengths, tgt_lengths, lines: LineBatch, options) -> KernelPlan:
+    """Intersections of the lines with every cloud of both sides in two kernel calls: the
+    neighbours and radii of all points, then the intersections (each sample's lines walk one
+    grid holding both of its clouds).
 
     Args:
-        clouds: per side, ``(B, N_side, 3)`` float64 CPU points (detached).
-        valids, radii, neighbors: per side, ``(B, N_side)``, ``(B, N_side)``, ``(B, N_side, k)``.
+        src, tgt: ``(B, N, 3)``, ``(B, M, 3)`` clouds (copied to the CPU in float64);
+            src_lengths, tgt_lengths: ``(B,)`` int64 CPU valid points.
     """
     batch, n_lines = lines.origins.shape[:2]
     mode = INTERSECTIONS[options.intersection]
-    origins = lines.origins.cpu().numpy()
-    dirs = lines.dirs.cpu().numpy()
-    counts = [int(c) for c in lines.counts]
-    lengths = [valid.sum(dim=1).tolist() for valid in valids]
-    points, radius, nbrs = [], [], []
-    for cloud, rad, nbr, side_lengths in zip(clouds, radii, neighbors, lengths, strict=True):
-        for b in range(batch):
-            points.append(cloud[b, : side_lengths[b]].numpy())
-            radius.append(rad[b, : side_lengths[b]].numpy())
-            local = nbr[b, : side_lengths[b]].numpy()
-            nbrs.append(local if mode != line_kernels.MODE_CANDIDATES else local[:, :0])
-    cells = []
-    for b in range(batch):
-        sample_points = np.concatenate([points[b], points[batch + b]])
-        sample_radius = np.concatenate([radius[b], radius[batch + b]])
-        n_points = (lengths[0][b] + lengths[1][b]) / 2
-        cells.append(line_kernels.grid_cell_size(sample_points, sample_radius, options.cell_factor, n_points))
+    point_lengths = torch.cat([src_lengths, tgt_lengths]).numpy()
+    point_offsets = np.concatenate([[0], np.cumsum(point_lengths)])
+    points = _stacked_points([src, tgt], point_lengths)
+    neighbors, _, radius = line_kernels.cloud_neighborhoods(
+        points, point_offsets, options.k, mode == line_kernels.MODE_TRIPLET, options.delta_factor
+    )
+    if mode == line_kernels.MODE_CANDIDATES:
+        neighbors = np.empty((len(points), 0), dtype=np.int64)
+    cells = line_kernels.sample_cell_sizes(points, point_offsets, radius, batch, options.cell_factor)
+    counts = lines.counts
+    origins, dirs = lines.origins.cpu().numpy(), lines.dirs.cpu().numpy()
+    if (counts == n_lines).all():
+        origins, dirs = origins.reshape(-1, 3), dirs.reshape(-1, 3)
+        line_ids = np.arange(batch * n_lines)
+    else:
+        origins = np.concatenate([origins[b, : counts[b]] for b in range(batch)])
+        dirs = np.concatenate([dirs[b, : counts[b]] for b in range(batch)])
+        line_ids = np.concatenate([b * n_lines + np.arange(counts[b]) for b in range(batch)])
     sample_line_offsets = np.concatenate([[0], np.cumsum(counts)])
-    point_offsets = np.concatenate([[0], np.cumsum([len(p) for p in points])])
-    threads = numba.get_num_threads()
-    chunk = int(np.clip(sample_line_offsets[-1] // (4 * threads), 64, 1024))
-    stacked_neighbors = np.ascontiguousarray(np.concatenate(nbrs))
+    chunk = int(np.clip(sample_line_offsets[-1] // (4 * numba.get_num_threads()), 64, 1024))
     offsets, anchors, weights = line_kernels.line_intersections(
-        np.concatenate([origins[b, : counts[b]] for b in range(batch)]),
-        np.concatenate([dirs[b, : counts[b]] for b in range(batch)]),
+        origins,
+        dirs,
         sample_line_offsets,
-        np.concatenate(points),
+        points,
         point_offsets,
-        np.concatenate(radius),
-        stacked_neighbors,
+        radius,
+        neighbors,
         mode,
         options.distance_eps,
-        np.array(cells),
+        cells,
         chunk,
     )
-    line_ids = np.concatenate([b * n_lines + np.arange(counts[b]) for b in range(batch)])
     return KernelPlan(
         offsets,
         anchors,
         weights,
-        np.concatenate([[0], np.cumsum(counts + counts)]),
+        np.concatenate([[0], np.cumsum(np.concatenate([counts, counts]))]),
         np.concatenate([line_ids, line_ids]),
         point_offsets,
-        stacked_neighbors,
+        neighbors,
     )
 
 
-def _plan_hits(plan: KernelPlan, clouds: list[torch.Tensor], neighbors: list[torch.Tensor], mode: int) -> list[Hits]:
-    """The plan as one :class:`Hits` per side (rows of the flattened padded clouds)."""
-    batch = clouds[0].shape[0]
+def _plan_hits(plan: KernelPlan, sizes: tuple[int, int], mode: int) -> list[Hits]:
+    """The plan as one :class:`Hits` per side (rows of the flattened padded clouds, whose padded
+    sizes are ``sizes``)."""
+    batch = (len(plan.point_offsets) - 1) // 2
     per_line = np.diff(plan.offsets)
     hit_line = np.repeat(plan.line_ids, per_line)
     cloud_of_line = np.repeat(np.arange(2 * batch), np.diff(plan.line_offsets))
     hit_cloud = np.repeat(cloud_of_line, per_line)
     line_offsets, offsets = plan.line_offsets, plan.offsets
     result = []
-    for side, cloud in enumerate(clouds):
-        n = cloud.shape[1]
+    for side, n in enumerate(sizes):
         rows = slice(offsets[line_offsets[side * batch]], offsets[line_offsets[(side + 1) * batch]])
-        sample = hit_cloud[rows] - side * batch
+        cloud = hit_cloud[rows]
         anchor = plan.anchors[rows]
         members = anchor[:, None]
         if mode != line_kernels.MODE_CANDIDATES:
-            members = np.concatenate([members, neighbors[side].numpy()[sample, anchor]], axis=1)
+            members = np.concatenate([members, plan.neighbors[plan.point_offsets[cloud] + anchor]], axis=1)
+        sample = cloud - side * batch
         result.append(
             Hits(
                 torch.from_numpy(hit_line[rows]),
@@ -494,13 +477,11 @@ def _line_batch(src, tgt, src_lengths, tgt_lengths, options, generator, lines) -
     return LineBatch(origins, dirs, counts)
 
 
-def _cloud_setups(src, tgt, src_lengths, tgt_lengths, options, backend):
-    """Per side (source, target): detached float64 points (on the CPU for ``numba``), ``valid``
-    masks, neighbours and cylinder radii."""
+def _torch_setups(src, tgt, src_lengths, tgt_lengths, options):
+    """Per side (source, target), on the clouds' device for the torch backend: detached float64
+    points, ``valid`` masks, cylinder radii and neighbours."""
     clouds = [cloud.detach().double() for cloud in (src, tgt)]
-    if backend == "numba":
-        clouds = [cloud.cpu() for cloud in clouds]
-    setups = _neighbors(clouds, [src_lengths, tgt_lengths], options.k, backend)
+    setups = _torch_neighbors(clouds, [src_lengths, tgt_lengths], options.k)
     valids = [valid for valid, _, _ in setups]
     neighbors = [nbr for _, nbr, _ in setups]
     radii = [
@@ -517,15 +498,15 @@ def _line_pairs(src, tgt, src_lengths, tgt_lengths, options, generator, lines) -
     batch = src.shape[0]
     line_batch = _line_batch(src, tgt, src_lengths, tgt_lengths, options, generator, lines)
     n_lines = line_batch.origins.shape[1]
-    clouds, valids, radii, neighbors = _cloud_setups(src, tgt, src_lengths, tgt_lengths, options, backend)
     mode = INTERSECTIONS[options.intersection]
     if backend == "numba":
-        plan = _numba_plan(clouds, valids, radii, neighbors, line_batch, options)
+        plan = _numba_plan(src, tgt, src_lengths, tgt_lengths, line_batch, options)
         hits = [
             Hits(h.line.to(device), h.members.to(device), h.weights.to(device))
-            for h in _plan_hits(plan, clouds, neighbors, mode)
+            for h in _plan_hits(plan, (src.shape[1], tgt.shape[1]), mode)
         ]
     else:
+        clouds, valids, radii, neighbors = _torch_setups(src, tgt, src_lengths, tgt_lengths, options)
         line_valid, eps2 = line_batch.valid(), options.distance_eps
         hits = [
             line_torch.torch_hits(c, v, r, n, line_batch.origins, line_batch.dirs, line_valid, mode, eps2)
@@ -671,13 +652,19 @@ class FusedLineValue(torch.autograd.Function):
             0.0 if options.nu is None else options.nu,
             float(torch.finfo(src.dtype).tiny),
         )
+        grad_rows = torch.from_numpy(grad)
         grads = []
         for side, cloud in enumerate((src, tgt)):
-            padded = np.zeros((batch, *cloud.shape[1:]))
-            for b in range(batch):
-                c = side * batch + b
-                padded[b, : plan.point_lengths[c]] = grad[plan.point_offsets[c] : plan.point_offsets[c + 1]]
-            grads.append(torch.from_numpy(padded).to(cloud.device, cloud.dtype))
+            first = side * batch
+            rows = grad_rows[plan.point_offsets[first] : plan.point_offsets[first + batch]]
+            if (plan.point_lengths[first : first + batch] == cloud.shape[1]).all():
+                padded = rows.view(cloud.shape)
+            else:
+                padded = rows.new_zeros(cloud.shape)
+                for b in range(batch):
+                    c = first + b
+                    padded[b, : plan.point_lengths[c]] = grad_rows[plan.point_offsets[c] : plan.point_offsets[c + 1]]
+            grads.append(padded.to(cloud.device, cloud.dtype))
         ctx.save_for_backward(*grads)
         scale_t, counts_t = torch.from_numpy(scale), torch.from_numpy(counts)
         ctx.mark_non_differentiable(scale_t, counts_t)
@@ -693,8 +680,7 @@ class FusedLineValue(torch.autograd.Function):
 def _fused_values(src, tgt, src_lengths, tgt_lengths, options, generator, lines):
     """Steps 1-3 on the numba path (:func:`fused_path`): ``(B,)`` values and ``(B, 7)`` statistics."""
     line_batch = _line_batch(src, tgt, src_lengths, tgt_lengths, options, generator, lines)
-    clouds, valids, radii, neighbors = _cloud_setups(src, tgt, src_lengths, tgt_lengths, options, "numba")
-    plan = _numba_plan(clouds, valids, radii, neighbors, line_batch, options)
+    plan = _numba_plan(src, tgt, src_lengths, tgt_lengths, line_batch, options)
     value, scale, counts = FusedLineValue.apply(src, tgt, plan, options)
     stats = torch.cat([torch.from_numpy(line_batch.counts)[:, None], counts], dim=1).double()
     return value, torch.cat([stats, scale[:, None]], dim=1)

@@ -5,8 +5,8 @@ The kernels decide *which* points form each intersection and *which* intersectio
 paper's per-line reduction and, since the weights are constants, its gradient w.r.t. every point
 in closed form; the loss wraps it in a ``torch.autograd.Function``. For the other settings the
 loss gathers the points with torch and autograd differentiates the value. The k nearest
-neighbours of the points come from :func:`nearest_neighbors` (a uniform grid, searched ring by
-ring).
+neighbours of the points and their radii come from :func:`cloud_neighborhoods` (a uniform grid,
+searched ring by ring).
 
 Candidate search, without ever testing all point-line pairs:
 
@@ -78,6 +78,28 @@ def grid_cell_size(points, radius, cell_factor, n_points):
     return max(factor * np.median(radius), floor, np.finfo(np.float64).tiny)
 
 
+@numba.njit(cache=True)
+def sample_cell_sizes(points, point_offsets, radius, n_samples, cell_factor):
+    """``(B,)`` :func:`grid_cell_size` of every sample, its clouds (``G`` sides, side-major as in
+    :func:`line_intersections`) together; ``n_points`` is the mean size of its clouds."""
+    n_sides = (point_offsets.shape[0] - 1) // n_samples
+    cells = np.empty(n_samples)
+    for b in range(n_samples):
+        size = 0
+        for g in range(n_sides):
+            size += point_offsets[g * n_samples + b + 1] - point_offsets[g * n_samples + b]
+        sample_points = np.empty((size, 3))
+        sample_radius = np.empty(size)
+        row = 0
+        for g in range(n_sides):
+            for i in range(point_offsets[g * n_samples + b], point_offsets[g * n_samples + b + 1]):
+                sample_points[row] = points[i]
+                sample_radius[row] = radius[i]
+                row += 1
+        cells[b] = grid_cell_size(sample_points, sample_radius, cell_factor, size / n_sides)
+    return cells
+
+
 @numba.njit(cache=True, inline="always")
 def _ball_cells(points, radius, i, grid_min, dims, cell):
     """Cell index range ``lo_x, hi_x, lo_y, hi_y, lo_z, hi_z`` (inclusive) overlapped by the
@@ -99,8 +121,8 @@ def build_dilated_grid(points, radius, starts, stops, cell):
     ``radius``-ball overlaps the cell, in cloud order then row order.
 
     Returns ``(grid_min (3,), dims (3,) int64, cell_start (C+1,), entry_rows (S,) int64,
-    entry_xyzr (S, 4))``: the row of each entry in ``points`` and its coordinates and squared
-    radius, stored in cell order so that a line walk reads memory sequentially.
+    entry_xyzr (4, S))``: the row of each entry in ``points`` and its coordinates and squared
+    radius (one row each), stored in cell order so that a line walk reads memory sequentially.
     """
     grid_min = np.full(3, np.inf)
     grid_max = np.full(3, -np.inf)
@@ -126,7 +148,7 @@ def build_dilated_grid(points, radius, starts, stops, cell):
     cell_start = np.cumsum(counts)
     fill = cell_start[:-1].copy()
     entry_rows = np.empty(cell_start[-1], dtype=np.int64)
-    entry_xyzr = np.empty((cell_start[-1], 4))
+    entry_xyzr = np.empty((4, cell_start[-1]))
     for g in range(starts.shape[0]):
         for i in range(starts[g], stops[g]):
             lx, hx, ly, hy, lz, hz = _ball_cells(points, radius, i, grid_min, dims, cell)
@@ -137,10 +159,10 @@ def build_dilated_grid(points, radius, starts, stops, cell):
                         s = fill[c]
                         fill[c] = s + 1
                         entry_rows[s] = i
-                        entry_xyzr[s, 0] = points[i, 0]
-                        entry_xyzr[s, 1] = points[i, 1]
-                        entry_xyzr[s, 2] = points[i, 2]
-                        entry_xyzr[s, 3] = radius[i] * radius[i]
+                        entry_xyzr[0, s] = points[i, 0]
+                        entry_xyzr[1, s] = points[i, 1]
+                        entry_xyzr[2, s] = points[i, 2]
+                        entry_xyzr[3, s] = radius[i] * radius[i]
     return grid_min, dims, cell_start, entry_rows, entry_xyzr
 
 
@@ -219,13 +241,15 @@ def _axis_walk(o, u, lo, cell, dim, t_in, t_out):
 
 
 @numba.njit(cache=True, inline="always")
-def _collect_candidates(ox, oy, oz, ux, uy, uz, eps2, grid_min, dims, cell, cell_start, entry_xyzr, found):
+def _collect_candidates(ox, oy, oz, ux, uy, uz, eps2, grid_min, dims, cell, cell_start, entry_xyzr, flags, found):
     """Walk the line ``o + t u`` through a dilated grid (3D-DDA) and write to ``found`` the
     entries within their radius of it, in walk order; return their number.
 
     A point is stored in every cell its ball overlaps, so it is kept only in the cell whose
-    parameter interval holds its foot point's ``t`` (each point at most once). The test is
-    branch-free: every tested entry is written, and the count only advances past candidates.
+    parameter interval holds its foot point's ``t`` (each point at most once). The test has no
+    branch: a cell's entries (coordinates and squared radii stored as rows, ``entry_xyzr (4, S)``)
+    are tested in one loop into ``flags`` (``(S,)`` bool scratch), which the compiler vectorises,
+    then compacted into ``found``.
     """
     nx, ny, nz = dims[0], dims[1], dims[2]
     t0, t1 = _slab(ox, ux, grid_min[0], grid_min[0] + nx * cell, -np.inf, np.inf)
@@ -253,14 +277,22 @@ def _collect_candidates(ox, oy, oz, ux, uy, uz, eps2, grid_min, dims, cell, cell
     t_enter = -np.inf
     for _ in range(steps_x + steps_y + steps_z + 1):
         t_exit = min(tmx, min(tmy, tmz))
-        for s in range(cell_start[c], cell_start[c + 1]):
-            dx = entry_xyzr[s, 0] - ox
-            dy = entry_xyzr[s, 1] - oy
-            dz = entry_xyzr[s, 2] - oz
+        start = cell_start[c]
+        size = cell_start[c + 1] - start
+        xs = entry_xyzr[0, start : start + size]
+        ys = entry_xyzr[1, start : start + size]
+        zs = entry_xyzr[2, start : start + size]
+        r2s = entry_xyzr[3, start : start + size]
+        for j in range(size):
+            dx = xs[j] - ox
+            dy = ys[j] - oy
+            dz = zs[j] - oz
             t = dx * ux + dy * uy + dz * uz
             d2 = max(dx * dx + dy * dy + dz * dz - t * t, 0.0)
-            found[count] = s
-            count += (d2 + eps2 < entry_xyzr[s, 3]) & (t >= t_enter) & (t < t_exit)
+            flags[j] = (d2 + eps2 < r2s[j]) & (t >= t_enter) & (t < t_exit)
+        for j in range(size):
+            found[count] = start + j
+            count += flags[j]
         t_enter = t_exit
         if tmx == t_exit:
             c += stride_x
@@ -312,6 +344,7 @@ def _scan_lines(
     n_lines = origins.shape[0]
     k = neighbors.shape[1]
     found = np.empty(entry_rows.shape[0] + 1, dtype=np.int64)
+    flags = np.empty(entry_rows.shape[0], dtype=np.bool_)
     near = np.empty(k)
     row = out_row.copy()
     cloud_start = np.empty(n_sides, dtype=np.int64)
@@ -323,7 +356,7 @@ def _scan_lines(
         ox, oy, oz = origins[line, 0], origins[line, 1], origins[line, 2]
         ux, uy, uz = dirs[line, 0], dirs[line, 1], dirs[line, 2]
         n_found = _collect_candidates(
-            ox, oy, oz, ux, uy, uz, eps2, grid_min, dims, cell, cell_start, entry_xyzr, found
+            ox, oy, oz, ux, uy, uz, eps2, grid_min, dims, cell, cell_start, entry_xyzr, flags, found
         )
         # The neighbour test and the weights of each candidate.
         for j in range(n_found):
@@ -385,6 +418,20 @@ def _clamped_d2(points, i, ox, oy, oz, ux, uy, uz):
 
 
 @numba.njit(cache=True)
+def _float_zeros(shape):
+    """``np.zeros(shape)``, compiled apart: written inside a ``parallel=True`` kernel, an
+    allocation (or any array expression) becomes a parallel region of its own, and each region
+    wakes the threads; the kernels keep parallel regions to their ``prange`` loops."""
+    return np.zeros(shape)
+
+
+@numba.njit(cache=True)
+def _int_zeros(shape):
+    """``np.zeros(shape, int64)``, compiled apart (see :func:`_float_zeros`)."""
+    return np.zeros(shape, dtype=np.int64)
+
+
+@numba.njit(cache=True)
 def _sample_grids(points, point_offsets, radius, cells):
     """The dilated grid of every sample (its clouds together), as a list."""
     n_samples = cells.shape[0]
@@ -439,11 +486,13 @@ def line_intersections(origins, dirs, line_offsets, points, point_offsets, radiu
     items_per_sample = np.empty(n_samples, dtype=np.int64)
     for b in range(n_samples):
         items_per_sample[b] = (line_offsets[b + 1] - line_offsets[b] + chunk - 1) // chunk
-    n_items = items_per_sample.sum()
+    n_items = 0
+    for b in range(n_samples):
+        n_items += items_per_sample[b]
     item_sample = np.empty(n_items, dtype=np.int64)
     item_first = np.empty(n_items, dtype=np.int64)
     item_stop = np.empty(n_items, dtype=np.int64)
-    buffer_start = np.zeros(n_items + 1, dtype=np.int64)
+    buffer_start = _int_zeros(n_items + 1)
     item = 0
     for b in range(n_samples):
         for j in range(items_per_sample[b]):
@@ -456,7 +505,7 @@ def line_intersections(origins, dirs, line_offsets, points, point_offsets, radiu
     room = buffer_start[-1]
     buffer_anchor = np.empty(n_sides * room, dtype=np.int64)
     buffer_weight = np.empty((n_sides * room, k + 1))
-    counts = np.zeros(n_sides * n_lines, dtype=np.int64)
+    counts = _int_zeros(n_sides * n_lines)
     item_total = np.empty((n_items, n_sides), dtype=np.int64)
     for item in numba.prange(n_items):
         rows = np.empty(n_sides, dtype=np.int64)
@@ -486,8 +535,10 @@ def line_intersections(origins, dirs, line_offsets, points, point_offsets, radiu
             rows,
             stops,
         )
-    offsets = np.zeros(n_sides * n_lines + 1, dtype=np.int64)
-    offsets[1:] = np.cumsum(counts)
+    offsets = np.empty(n_sides * n_lines + 1, dtype=np.int64)
+    offsets[0] = 0
+    for line in range(n_sides * n_lines):
+        offsets[line + 1] = offsets[line] + counts[line]
     anchors = np.empty(offsets[-1], dtype=np.int64)
     weights = np.empty((offsets[-1], k + 1))
     for item in numba.prange(n_items):
@@ -592,7 +643,7 @@ def _hit_points(offsets, anchors, weights, line_offsets, points, point_offsets, 
     neighbours), and ``(H, k+1)`` the rows of ``points`` of the members; clouds in parallel."""
     n_hits = anchors.shape[0]
     k = neighbors.shape[1]
-    hit_points = np.zeros((n_hits, 3))
+    hit_points = np.empty((n_hits, 3))
     members = np.empty((n_hits, k + 1), dtype=np.int64)
     for c in numba.prange(point_offsets.shape[0] - 1):
         p0 = point_offsets[c]
@@ -601,9 +652,11 @@ def _hit_points(offsets, anchors, weights, line_offsets, points, point_offsets, 
             members[h, 0] = anchor
             for m in range(k):
                 members[h, m + 1] = p0 + neighbors[anchor, m]
-            for m in range(k + 1):
-                for a in range(3):
-                    hit_points[h, a] += weights[h, m] * points[members[h, m], a]
+            for a in range(3):
+                total = 0.0
+                for m in range(k + 1):
+                    total += weights[h, m] * points[members[h, m], a]
+                hit_points[h, a] = total
     return hit_points, members
 
 
@@ -658,7 +711,7 @@ def _closest_pairs(offsets, line_offsets, n_samples, hit_points, keep, pair_offs
     return src_hit, tgt_hit, dist_sq
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, parallel=True)
 def welsch_lines(
     offsets,
     anchors,
@@ -702,13 +755,16 @@ def welsch_lines(
     hit_points, members = _hit_points(offsets, anchors, weights, line_offsets, points, point_offsets, neighbors)
     ns, nt, keep, pair_offsets = _pair_slots(offsets, line_offsets, n_samples, max_hits)
     src_hit, tgt_hit, dist_sq = _closest_pairs(offsets, line_offsets, n_samples, hit_points, keep, pair_offsets)
-    value = np.zeros(n_samples)
-    scale = np.zeros(n_samples)
-    counts = np.zeros((n_samples, 5), dtype=np.int64)
-    hit_grad = np.zeros((anchors.shape[0], 3))
+    value = _float_zeros(n_samples)
+    scale = _float_zeros(n_samples)
+    counts = _int_zeros((n_samples, 5))
+    two_c = _float_zeros(n_samples)
+    per_line = _float_zeros(n_samples)
+    line_sample = np.empty(line_offsets[n_samples], dtype=np.int64)
     for b in range(n_samples):
         l0, l1 = line_offsets[b], line_offsets[b + 1]
         for line in range(l0, l1):
+            line_sample[line] = b
             counts[b, 0] += keep[line]
             counts[b, 1] += ns[line] > 0
             counts[b, 2] += nt[line] > 0
@@ -723,26 +779,37 @@ def welsch_lines(
             middle = (q1 - q0 - 1) // 2
             lower_median = np.partition(dist_sq[q0:q1], middle)[middle]
             scale[b] = nu0 * (lower_median if squared_input else math.sqrt(lower_median))
-        two_c = max(2.0 * (scale[b] if squared_input else scale[b] * scale[b]), tiny)
-        per_line = 1.0 / max(counts[b, 0], 1)
+        two_c[b] = max(2.0 * (scale[b] if squared_input else scale[b] * scale[b]), tiny)
+        per_line[b] = 1.0 / max(counts[b, 0], 1)
+    # Lines in parallel: each intersection belongs to one line, so each gradient row has one writer.
+    line_total = np.empty(line_offsets[n_samples])
+    hit_grad = _float_zeros((anchors.shape[0], 3))
+    for line in numba.prange(line_offsets[n_samples]):
+        b = line_sample[line]
+        w = math.exp(-abs(ns[line] - nt[line]) / 2.0) if line_weight else 1.0
         total = 0.0
-        for line in range(l0, l1):
-            w = math.exp(-abs(ns[line] - nt[line]) / 2.0) if line_weight else 1.0
-            for p in range(pair_offsets[line], pair_offsets[line + 1]):
-                near = math.exp(-dist_sq[p] / two_c)
-                total += w * (1.0 - near)
-                slope = per_line * w * near * 2.0 / two_c
-                s, g = src_hit[p], tgt_hit[p]
-                for a in range(3):
-                    step = slope * (hit_points[s, a] - hit_points[g, a])
-                    hit_grad[s, a] += step
-                    hit_grad[g, a] -= step
-        value[b] = total * per_line
-    grad = np.zeros(points.shape)
-    for h in range(anchors.shape[0]):
-        for m in range(members.shape[1]):
+        for p in range(pair_offsets[line], pair_offsets[line + 1]):
+            near = math.exp(-dist_sq[p] / two_c[b])
+            total += w * (1.0 - near)
+            slope = per_line[b] * w * near * 2.0 / two_c[b]
+            s, g = src_hit[p], tgt_hit[p]
             for a in range(3):
-                grad[members[h, m], a] += weights[h, m] * hit_grad[h, a]
+                step = slope * (hit_points[s, a] - hit_points[g, a])
+                hit_grad[s, a] += step
+                hit_grad[g, a] -= step
+        line_total[line] = total
+    for b in range(n_samples):
+        total = 0.0  # a plain loop: an array sum here would become a parallel reduction
+        for line in range(line_offsets[b], line_offsets[b + 1]):
+            total += line_total[line]
+        value[b] = total * per_line[b]
+    # Clouds in parallel: the members of an intersection are points of its own cloud.
+    grad = _float_zeros(points.shape)
+    for c in numba.prange(point_offsets.shape[0] - 1):
+        for h in range(offsets[line_offsets[c]], offsets[line_offsets[c + 1]]):
+            for m in range(members.shape[1]):
+                for a in range(3):
+                    grad[members[h, m], a] += weights[h, m] * hit_grad[h, a]
     return value, grad, scale, counts
 
 
@@ -841,22 +908,54 @@ def _cloud_knn(points, k, out_index, out_dist):
             out_dist[i, m] = math.sqrt(best[m])
 
 
+@numba.njit(cache=True)
+def _cloud_radius(points, index, dist, triplet, delta_factor, out):
+    """Cylinder radius ``delta`` of every point of one cloud from its ``k`` nearest neighbours:
+    ``delta_factor`` times the cloud's mean neighbour distance ``d_nei`` (one value for the
+    cloud), or for ``triplet`` the locally adaptive ``delta_factor`` times the mean pairwise
+    spacing of the point and its neighbours."""
+    n, k = index.shape
+    if not triplet:
+        total = 0.0
+        for i in range(n):
+            total += dist[i].sum() / k
+        out[:] = delta_factor * (total / n)
+        return
+    pairs = k * (k + 1) / 2
+    for i in range(n):
+        spacing = dist[i].sum()
+        for a in range(k):
+            for b in range(a + 1, k):
+                d = 0.0
+                for axis in range(3):
+                    diff = points[index[i, a], axis] - points[index[i, b], axis]
+                    d += diff * diff
+                spacing += math.sqrt(d)
+        out[i] = delta_factor * spacing / pairs
+
+
 @numba.njit(cache=True, parallel=True)
-def nearest_neighbors(points, point_offsets, k):
-    """The ``k`` nearest other points of every point, cloud by cloud (clouds in parallel).
+def cloud_neighborhoods(points, point_offsets, k, triplet, delta_factor):
+    """The ``k`` nearest other points of every point and its cylinder radius, cloud by cloud
+    (clouds in parallel).
 
     Args:
         points: ``(N, 3)`` float64, the clouds back to back.
         point_offsets: ``(C+1,)`` int64 point range of each cloud (each with more than ``k`` points).
         k: neighbours per point.
+        triplet: radius of ``MODE_TRIPLET`` (per point) instead of the per-cloud ``delta``.
+        delta_factor: ``delta = delta_factor * d_nei`` (see :func:`_cloud_radius`).
 
     Returns:
         ``index (N, k)`` int64 cloud-local indices and ``dist (N, k)`` float64 Euclidean
-        distances, ascending; a point's own index is never among its neighbours, its duplicates are.
+        distances, ascending (a point's own index is never among its neighbours, its duplicates
+        are), and ``radius (N,)`` float64.
     """
     index = np.empty((points.shape[0], k), dtype=np.int64)
     dist = np.empty((points.shape[0], k))
+    radius = np.empty(points.shape[0])
     for c in numba.prange(point_offsets.shape[0] - 1):
         p0, p1 = point_offsets[c], point_offsets[c + 1]
         _cloud_knn(points[p0:p1], k, index[p0:p1], dist[p0:p1])
-    return index, dist
+        _cloud_radius(points[p0:p1], index[p0:p1], dist[p0:p1], triplet, delta_factor, radius[p0:p1])
+    return index, dist, radius

@@ -36,42 +36,47 @@ def _rand(shape: tuple[int, ...], generator: torch.Generator) -> np.ndarray:
     return torch.rand(shape, generator=generator, dtype=torch.float64).numpy()
 
 
+@numba.njit(cache=True, inline="always")
+def _sphere_point(u_draw: float, alpha_draw: float) -> tuple[float, float, float]:
+    """The unit-sphere point ``S(u, alpha)`` of uniform draws in ``[0, 1)``: ``u = 2 u_draw - 1``,
+    ``alpha = 2 pi alpha_draw``."""
+    u = 2.0 * u_draw - 1.0
+    alpha = 2.0 * math.pi * alpha_draw
+    rho = math.sqrt(max(1.0 - u * u, 0.0))
+    return rho * math.cos(alpha), rho * math.sin(alpha), u
+
+
 @numba.njit(cache=True, parallel=True)
 def _unit_sphere_rows(u_draws: np.ndarray, alpha_draws: np.ndarray) -> np.ndarray:
-    """``(n, 3)`` points ``S(u, alpha)`` of the unit sphere from ``(n,)`` uniform draws in
-    ``[0, 1)``: ``u = 2 u_draw - 1``, ``alpha = 2 pi alpha_draw``."""
+    """``(n, 3)`` points :func:`_sphere_point` of ``(n,)`` draws."""
     n = u_draws.shape[0]
     out = np.empty((n, 3))
     for i in numba.prange(n):
-        u = 2.0 * u_draws[i] - 1.0
-        alpha = 2.0 * math.pi * alpha_draws[i]
-        rho = math.sqrt(max(1.0 - u * u, 0.0))
-        out[i, 0] = rho * math.cos(alpha)
-        out[i, 1] = rho * math.sin(alpha)
-        out[i, 2] = u
+        out[i, 0], out[i, 1], out[i, 2] = _sphere_point(u_draws[i], alpha_draws[i])
     return out
 
 
 @numba.njit(cache=True, parallel=True)
-def _chord_lines(first: np.ndarray, second: np.ndarray, center: np.ndarray, radius: float):
-    """Lines through ``center + radius * first`` towards ``center + radius * second`` (rows of
-    ``(n, 3)`` unit-sphere points): ``origins (n, 3)``, unit ``directions (n, 3)`` and ``(n,)``
-    bool, True where the two points (nearly) coincide and the direction is left undefined."""
-    n = first.shape[0]
+def _sphere_chords(draws: np.ndarray, center: np.ndarray, radius: float):
+    """Lines through ``center + radius * a`` towards ``center + radius * b``, ``a`` and ``b`` the
+    unit-sphere points (:func:`_sphere_point`) of the draws ``(4, n)`` (rows: ``u`` and ``alpha``
+    of ``a``, then of ``b``): ``origins (n, 3)``, unit ``directions (n, 3)`` and ``(n,)`` bool,
+    True where ``a`` and ``b`` (nearly) coincide and the direction is left undefined."""
+    n = draws.shape[1]
     origins = np.empty((n, 3))
     dirs = np.empty((n, 3))
     degenerate = np.empty(n, dtype=np.bool_)
     for i in numba.prange(n):
-        dx = second[i, 0] - first[i, 0]
-        dy = second[i, 1] - first[i, 1]
-        dz = second[i, 2] - first[i, 2]
+        ax, ay, az = _sphere_point(draws[0, i], draws[1, i])
+        bx, by, bz = _sphere_point(draws[2, i], draws[3, i])
+        dx, dy, dz = bx - ax, by - ay, bz - az
         norm = math.sqrt(dx * dx + dy * dy + dz * dz)
         degenerate[i] = norm < 1e-12
         if degenerate[i]:
             norm = 1.0
-        for a, d in ((0, dx), (1, dy), (2, dz)):
-            origins[i, a] = center[a] + radius * first[i, a]
-            dirs[i, a] = d / norm
+        for axis, a, d in ((0, ax, dx), (1, ay, dy), (2, az, dz)):
+            origins[i, axis] = center[axis] + radius * a
+            dirs[i, axis] = d / norm
     return origins, dirs, degenerate
 
 
@@ -82,11 +87,11 @@ def _unit_sphere_points(n: int, generator: torch.Generator) -> np.ndarray:
 
 
 def _sphere(center: np.ndarray, radius: float, n: int, generator: torch.Generator) -> tuple[np.ndarray, np.ndarray]:
-    """Lines through two independent points of a sphere; the direction comes from the unit
-    sphere points, so it stays defined for any radius (a random one for coincident points)."""
-    first = _unit_sphere_points(n, generator)
-    second = _unit_sphere_points(n, generator)
-    origins, dirs, degenerate = _chord_lines(first, second, np.asarray(center, dtype=np.float64), float(radius))
+    """Lines through two independent points of a sphere (the draws of two
+    :func:`_unit_sphere_points` calls, taken at once); the direction comes from the unit sphere
+    points, so it stays defined for any radius (a random one for coincident points)."""
+    draws = _rand((4, n), generator)
+    origins, dirs, degenerate = _sphere_chords(draws, np.asarray(center, dtype=np.float64), float(radius))
     if degenerate.any():
         dirs[degenerate] = _unit_sphere_points(int(degenerate.sum()), generator)
     return origins, dirs
@@ -104,23 +109,30 @@ def _hits_box(origins: np.ndarray, dirs: np.ndarray, box_min: np.ndarray, box_ma
     return lo.max(axis=1) <= hi.min(axis=1)
 
 
-def _cloud_summaries(cloud: torch.Tensor, lengths: torch.Tensor) -> torch.Tensor:
-    """``(B, 10)`` per sample: bounding-box min (3), max (3), centroid (3), point count (1) of
-    the valid points of ``cloud (B, N, 3)``, float64, computed on the cloud's device."""
-    valid = torch.arange(cloud.shape[1], device=cloud.device)[None] < lengths[:, None]
+def _box_and_centroid(cloud: torch.Tensor, lengths: torch.Tensor) -> torch.Tensor:
+    """``(B, 9)`` per sample: bounding-box min (3), max (3) and centroid (3) of the valid points
+    of ``cloud (B, N, 3)``, float64, computed on the cloud's device."""
+    valid = (torch.arange(cloud.shape[1], device=cloud.device)[None] < lengths[:, None])[..., None]
     points = cloud.detach().double()
+    lo = points.masked_fill(~valid, math.inf).amin(dim=1)
+    hi = points.masked_fill(~valid, -math.inf).amax(dim=1)
+    centroid = (points * valid).sum(dim=1) / lengths[:, None]
+    return torch.cat([lo, hi, centroid], dim=1)
+
+
+def _joint_cover(src: torch.Tensor, tgt: torch.Tensor, src_lengths: torch.Tensor, tgt_lengths: torch.Tensor):
+    """``(B, 10)`` per sample: the joint bounding box's min (3), max (3) and centre (3) over the
+    valid points of both clouds, and the covering radius (1), the largest distance from that
+    centre to a valid point; float64, computed on the clouds' device."""
+    points = torch.cat([src, tgt], dim=1).detach().double()
+    index = torch.arange(points.shape[1], device=points.device)[None]
+    n_src = src.shape[1]
+    valid = (index < src_lengths[:, None]) | ((index >= n_src) & (index < n_src + tgt_lengths[:, None]))
     lo = points.masked_fill(~valid[..., None], math.inf).amin(dim=1)
     hi = points.masked_fill(~valid[..., None], -math.inf).amax(dim=1)
-    count = valid.sum(dim=1, keepdim=True).double()
-    centroid = (points * valid[..., None]).sum(dim=1) / count
-    return torch.cat([lo, hi, centroid, count], dim=1)
-
-
-def _farthest_from(cloud: torch.Tensor, lengths: torch.Tensor, center: torch.Tensor) -> torch.Tensor:
-    """``(B,)`` largest distance from ``center (B, 3)`` to a valid point of ``cloud (B, N, 3)``."""
-    valid = torch.arange(cloud.shape[1], device=cloud.device)[None] < lengths[:, None]
-    dist = (cloud.detach().double() - center[:, None]).norm(dim=-1)
-    return dist.masked_fill(~valid, 0.0).amax(dim=1)
+    center = (lo + hi) / 2
+    cover = (points - center[:, None]).norm(dim=-1).masked_fill(~valid, 0.0).amax(dim=1)
+    return torch.cat([lo, hi, center, cover[:, None]], dim=1)
 
 
 def sample_line_batch(
@@ -161,29 +173,25 @@ def sample_line_batch(
     if sampling not in SAMPLERS:
         raise ValueError(f"unknown line sampling {sampling!r}; choose one of {', '.join(SAMPLERS)}")
     device = src.device
-    src_summary, tgt_summary = _cloud_summaries(src, src_lengths), _cloud_summaries(tgt, tgt_lengths)
-    joint_lo = torch.minimum(src_summary[:, 0:3], tgt_summary[:, 0:3])
-    joint_hi = torch.maximum(src_summary[:, 3:6], tgt_summary[:, 3:6])
-    center = (joint_lo + joint_hi) / 2
-    cover = torch.maximum(_farthest_from(src, src_lengths, center), _farthest_from(tgt, tgt_lengths, center))
-    # The only host transfer of the sampler: (B, 30) numbers.
-    stats = torch.cat([src_summary, tgt_summary, center, cover[:, None], joint_lo, joint_hi], dim=1).cpu().numpy()
+    # The only host transfer of the sampler: (B, 12) numbers, (B, 30) for ``authors``.
+    parts = [_joint_cover(src, tgt, src_lengths, tgt_lengths), src_lengths[:, None], tgt_lengths[:, None]]
+    if sampling == "authors":
+        parts += [_box_and_centroid(src, src_lengths), _box_and_centroid(tgt, tgt_lengths)]
+    stats = torch.cat([part.double() for part in parts], dim=1).cpu().numpy()
     batch = src.shape[0]
     origins = np.empty((batch, num_lines, 3))
     dirs = np.empty((batch, num_lines, 3))
     counts = np.full(batch, num_lines, dtype=np.int64)
     picks = np.zeros((batch, 2, num_lines), dtype=np.int64)
     for b in range(batch):
-        s_lo, s_hi, t_lo, t_hi = stats[b, 0:3], stats[b, 3:6], stats[b, 10:13], stats[b, 13:16]
-        t_centroid, center_b, cover_b = stats[b, 16:19], stats[b, 20:23], stats[b, 23]
-        lo, hi = stats[b, 24:27], stats[b, 27:30]
+        lo, hi, center_b, cover_b = stats[b, 0:3], stats[b, 3:6], stats[b, 6:9], stats[b, 9]
         if sampling == "sphere":
             origins[b], dirs[b] = _sphere(center_b, cover_b * radius_factor, num_lines, generator)
         elif sampling == "box_point_direction":
             origins[b] = lo + (hi - lo) * _rand((num_lines, 3), generator)
             dirs[b] = _unit_sphere_points(num_lines, generator)
         elif sampling == "cloud_points":
-            for side, n_points in ((0, stats[b, 9]), (1, stats[b, 19])):
+            for side, n_points in ((0, stats[b, 10]), (1, stats[b, 11])):
                 n_points = int(n_points)
                 picks[b, side] = (_rand((num_lines,), generator) * n_points).astype(np.int64).clip(0, n_points - 1)
                 # origins/dirs hold the two perturbations until the picked points are added.
@@ -191,6 +199,8 @@ def sample_line_batch(
                     perturbation * cover_b * (2.0 * _rand((num_lines, 3), generator) - 1.0)
                 )
         else:
+            s_lo, s_hi = stats[b, 12:15], stats[b, 15:18]
+            t_lo, t_hi, t_centroid = stats[b, 21:24], stats[b, 24:27], stats[b, 27:30]
             radius = float(np.linalg.norm(t_hi - t_lo)) * radius_factor
             kept_o, kept_d, total = [], [], 0
             for _ in range(_AUTHORS_ROUNDS):
@@ -220,6 +230,7 @@ def sample_line_batch(
         fallback = torch.from_numpy(np.stack([_unit_sphere_points(num_lines, generator) for _ in range(batch)]))
         direction = end - start
         norm = direction.norm(dim=-1, keepdim=True)
+        cover = torch.from_numpy(stats[:, 9]).to(device)
         degenerate = norm <= 1e-12 * cover[:, None, None]
         origins_t = start
         dirs_t = torch.where(degenerate, fallback.to(device), direction / norm.clamp_min(torch.finfo(norm.dtype).tiny))

@@ -28,7 +28,7 @@ on a quiet machine and with another process spinning on one core (started and st
 ``--profile`` instead profiles ``--repeats`` forward+backward calls per row with ``cProfile`` on one
 thread, timed in CPU time of the process (steady on a machine busy with other jobs, where wall
 times are not), and prints the functions that take the most time of their own, then the time of
-the metric's pieces (candidate search, line sampler, kNN, matching and value, the rest).
+the metric's pieces (candidate search, line sampler, kNN and radii, matching and value, the rest).
 
 OpenMP threads that spin while they wait make every parallel region wait for a descheduled
 thread on a busy machine; the script sets ``OMP_WAIT_POLICY=PASSIVE`` before importing torch
@@ -281,7 +281,7 @@ def batch_table(args) -> None:
 PROFILE_PIECES = {
     "line_intersections": "candidate search (line_kernels.line_intersections)",
     "sample_line_batch": "line sampler (lines.sample_line_batch)",
-    "nearest_neighbors": "kNN (line_kernels.nearest_neighbors)",
+    "cloud_neighborhoods": "kNN and radii (line_kernels.cloud_neighborhoods)",
     "welsch_lines": "matching, value and gradient (line_kernels.welsch_lines)",
 }
 

@@ -1,10 +1,11 @@
-"""The numba path's fused value and gradient (FusedLineValue) against the torch formula, and
-the numba grid kNN against brute force."""
+"""The numba path's fused value and gradient (FusedLineValue) against the torch formula, the
+numba grid kNN against brute force and its radii against the torch backend's."""
 
 from __future__ import annotations
 
 import dataclasses
 
+import numba
 import numpy as np
 import pytest
 import torch
@@ -14,11 +15,12 @@ from linereg.losses.line_intersection import (
     FusedLineValue,
     LineMetricOptions,
     _checked_inputs,
-    _cloud_setups,
     _fused_values,
     _line_batch,
     _line_pairs,
     _numba_plan,
+    _stacked_points,
+    _torch_setups,
     _values,
     fused_path,
 )
@@ -92,7 +94,7 @@ def test_fused_gradient_passes_gradcheck_for_a_fixed_plan(intersection):
     tgt = torch.stack([blob(70, 9)])
     work = _checked_inputs(src, tgt, None, None, options)
     lines = _line_batch(*work, options, torch.Generator().manual_seed(1), None)
-    plan = _numba_plan(*_cloud_setups(*work, options, "numba"), lines, options)
+    plan = _numba_plan(*work, lines, options)
     assert len(plan.anchors) > 40
 
     def value(s, t):
@@ -134,7 +136,7 @@ def test_grid_knn_matches_brute_force_on_awkward_clouds():
     ]
     offsets = np.concatenate([[0], np.cumsum([len(c) for c in clouds])])
     for k in (1, 2, 3):
-        index, dist = line_kernels.nearest_neighbors(np.concatenate(clouds), offsets, k)
+        index, dist, _ = line_kernels.cloud_neighborhoods(np.concatenate(clouds), offsets, k, False, 1.0)
         for c, cloud in enumerate(clouds):
             ref_dist, ref_index, distinct = brute_force_knn(cloud, k)
             rows = slice(offsets[c], offsets[c + 1])
@@ -146,3 +148,56 @@ def test_grid_knn_matches_brute_force_on_awkward_clouds():
             if c < 3:
                 assert distinct.mean() > 0.9
             np.testing.assert_array_equal(index[rows][distinct], ref_index[distinct])
+
+
+@pytest.mark.parametrize("intersection", ["convex", "triplet"])
+def test_compiled_radii_match_the_torch_backends(intersection):
+    options = LineMetricOptions(intersection=intersection, k=3, delta_factor=0.7)
+    src, tgt, src_lengths, tgt_lengths = padded_pair()
+    _, valids, radii, neighbors = _torch_setups(src, tgt, src_lengths, tgt_lengths, options)
+    lengths = np.concatenate([src_lengths.numpy(), tgt_lengths.numpy()])
+    points = _stacked_points([src, tgt], lengths)
+    offsets = np.concatenate([[0], np.cumsum(lengths)])
+    index, _, radius = line_kernels.cloud_neighborhoods(points, offsets, 3, intersection == "triplet", 0.7)
+    for side, valid in enumerate(valids):
+        for b in range(2):
+            rows = slice(offsets[2 * side + b], offsets[2 * side + b + 1])
+            np.testing.assert_allclose(radius[rows], radii[side][b][valid[b]].numpy(), rtol=1e-13, atol=0.0)
+            np.testing.assert_array_equal(index[rows], neighbors[side][b][valid[b]].numpy())
+    if intersection == "convex":
+        assert len(np.unique(radius[offsets[0] : offsets[1]])) == 1
+    else:
+        assert len(np.unique(radius[offsets[0] : offsets[1]])) > 100
+
+
+def test_cell_sizes_of_a_batch_are_those_of_each_sample_alone():
+    rng = np.random.default_rng(3)
+    clouds = [rng.normal(size=(n, 3)) * scale for n, scale in ((50, 1.0), (80, 3.0), (60, 1.0), (40, 3.0))]
+    radius = [rng.uniform(0.05, 0.2, len(c)) for c in clouds]
+    offsets = np.concatenate([[0], np.cumsum([len(c) for c in clouds])])
+    cells = line_kernels.sample_cell_sizes(np.concatenate(clouds), offsets, np.concatenate(radius), 2, 4.0)
+    for b in range(2):  # sample b: clouds b (source) and 2 + b (target)
+        alone = line_kernels.grid_cell_size(
+            np.concatenate([clouds[b], clouds[2 + b]]),
+            np.concatenate([radius[b], radius[2 + b]]),
+            4.0,
+            (len(clouds[b]) + len(clouds[2 + b])) / 2,
+        )
+        assert cells[b] == alone
+    assert cells[1] > 2 * cells[0]
+
+
+def test_fused_value_and_gradient_do_not_depend_on_the_number_of_threads():
+    options = LineMetricOptions(num_lines=1500, backend="numba")
+    src, tgt, src_lengths, tgt_lengths = padded_pair()
+    previous = numba.get_num_threads()
+    results = []
+    try:
+        for threads in sorted({1, numba.config.NUMBA_NUM_THREADS}):
+            numba.set_num_threads(threads)
+            results.append(both_paths(options, src, tgt, src_lengths, tgt_lengths)[0])
+    finally:
+        numba.set_num_threads(previous)
+    for value, stats, grad in results[1:]:
+        assert torch.equal(value, results[0][0]) and torch.equal(grad, results[0][2])
+        assert torch.equal(stats, results[0][1])

@@ -105,7 +105,8 @@ def test_compiled_sphere_sampler_computes_the_papers_formula_on_the_same_draws()
 
 
 def test_compiled_sphere_sampler_gives_a_direction_for_coincident_points():
-    origins, dirs, degenerate = lines._chord_lines(np.eye(3), np.eye(3)[[0, 2, 1]], np.zeros(3), 2.0)
+    draws = np.array([[0.5, 0.5, 1.0], [0.0, 0.0, 0.25], [0.5, 1.0, 0.0], [0.0, 0.25, 0.5]])
+    origins, dirs, degenerate = lines._sphere_chords(draws, np.zeros(3), 2.0)
     np.testing.assert_array_equal(degenerate, [True, False, False])
     np.testing.assert_allclose(np.linalg.norm(dirs[1:], axis=1), 1.0)
-    np.testing.assert_array_equal(origins, 2.0 * np.eye(3))
+    np.testing.assert_allclose(origins, 2.0 * np.array([[1.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]]), atol=1e-15)

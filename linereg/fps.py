@@ -41,8 +41,12 @@ def _unique_fill(idx: np.ndarray, num_points: int) -> np.ndarray:
 
 
 def farthest_point_subset(points: np.ndarray, count: int | None) -> np.ndarray:
-    """The FPS subset ``(count, 3)`` of ``points (N, 3)``, in sampling order (all points if
-    ``count`` is ``None`` or ``N <= count``)."""
+    """The FPS subset ``(count, 3)`` of ``points (N, 3)`` as a set: its points keep their order
+    in ``points`` (all points if ``count`` is ``None`` or ``N <= count``).
+
+    Keeping the input order makes an FPS of the subset (the register default's coarse subsets
+    are FPS of its FPS subsets) start from the same point whether or not the cloud was subsampled.
+    """
     if count is None or len(points) <= count:
         return points
-    return points[farthest_point_indices(points, count)]
+    return points[np.sort(farthest_point_indices(points, count))]

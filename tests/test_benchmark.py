@@ -31,8 +31,10 @@ from linereg.structures import PairSample
 from linereg.train.benchmark import (
     benchmark,
     build_methods,
+    curve_shortfalls,
     expand_folder_argument,
     object_diameter,
+    recall_lines,
     run_benchmark,
     write_results,
 )
@@ -99,6 +101,19 @@ def test_write_results_writes_json_table_and_plot(tiny_records, tmp_path):
     assert "| icp_point |" in table and "| plane |" in table
     assert "Median" in table and "time mean (s)" in table
     assert paths["plot"].read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    below = recall["below_first"]["plane"]
+    first, other = np.array(curve), np.array(recall["recall"]["plane"])
+    np.testing.assert_allclose(below, np.array(recall["alphas"])[first < other])
+    assert ("every one of the 201 alphas" in table) == (not below)
+
+
+def test_curve_shortfalls_lists_the_alphas_where_the_first_method_is_below():
+    alphas = np.array([0.1, 0.2, 0.3])
+    curves = {"ours": [0.5, 0.5, 1.0], "icp": [0.0, 0.75, 1.0], "fgr": [0.0, 0.0, 0.5]}
+    assert curve_shortfalls(alphas, curves) == {"icp": [0.2], "fgr": []}
+    lines = recall_lines(alphas, curves)
+    assert "`ours` is below `icp` at 1 of 3 alphas (0.2 to 0.2)" in lines[2]
+    assert "`ours` is on or above `fgr` at every one of the 3 alphas" in lines[3]
 
 
 def test_relative_alpha_divides_by_the_diameter(tiny_records, tmp_path):

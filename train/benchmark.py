@@ -181,6 +181,36 @@ def recall_curves(
     return curves
 
 
+def curve_shortfalls(alphas: np.ndarray, curves: Mapping[str, Sequence[float]]) -> dict[str, list[float]]:
+    """Where the first method's alpha-recall lies below another's.
+
+    Returns:
+        ``{method: [alpha, ...]}`` for every other method: the thresholds at which the first
+        method of ``curves`` recalls fewer pairs (empty: on or above at every alpha).
+    """
+    names = list(curves)
+    reference = np.asarray(curves[names[0]], dtype=np.float64)
+    return {
+        name: [float(alpha) for alpha in alphas[reference < np.asarray(curves[name], dtype=np.float64) - 1e-12]]
+        for name in names[1:]
+    }
+
+
+def recall_lines(alphas: np.ndarray, curves: Mapping[str, Sequence[float]]) -> list[str]:
+    """Markdown lines saying where the first method's alpha-recall is on or above each other method's."""
+    names = list(curves)
+    lines = ["## Alpha-recall", ""]
+    for name, below in curve_shortfalls(alphas, curves).items():
+        if below:
+            lines.append(
+                f"- `{names[0]}` is below `{name}` at {len(below)} of {len(alphas)} alphas "
+                f"({min(below):.3g} to {max(below):.3g})"
+            )
+        else:
+            lines.append(f"- `{names[0]}` is on or above `{name}` at every one of the {len(alphas)} alphas")
+    return lines
+
+
 def markdown_tables(summary: Mapping[str, Mapping[str, float]]) -> str:
     """Mean table (the paper's Table 1 layout), median table, and time / success table."""
     lines = [
@@ -253,7 +283,8 @@ def write_results(
     Returns:
         ``{"json": ..., "table": ..., "plot": ...}`` paths. ``results.json`` holds
         ``settings``, ``summary`` (:func:`summarize_records`), ``alpha_recall`` (``alphas``,
-        ``relative``, ``recall`` per method) and ``records``.
+        ``relative``, ``recall`` per method, ``below_first``: :func:`curve_shortfalls`) and
+        ``records``; ``table.md`` ends with :func:`recall_lines` when there are several methods.
     """
     if not records:
         raise ValueError("no records to write")
@@ -268,11 +299,19 @@ def write_results(
     content = {
         "settings": _jsonable(dict(settings or {})),
         "summary": summary,
-        "alpha_recall": {"alphas": alphas.tolist(), "relative": relative_alpha, "recall": curves},
+        "alpha_recall": {
+            "alphas": alphas.tolist(),
+            "relative": relative_alpha,
+            "recall": curves,
+            "below_first": curve_shortfalls(alphas, curves),
+        },
         "records": [_jsonable(record) for record in records],
     }
     paths["json"].write_text(json.dumps(content, indent=1, allow_nan=True))
-    paths["table"].write_text(markdown_tables(summary))
+    table = markdown_tables(summary)
+    if len(curves) > 1:
+        table += "\n" + "\n".join(recall_lines(alphas, curves)) + "\n"
+    paths["table"].write_text(table)
     _plot(paths["plot"], alphas, curves, summary, relative_alpha)
     return paths
 

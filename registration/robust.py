@@ -394,7 +394,12 @@ def pose_search(
 
     Returns:
         ``translations (R, 3)`` and their costs ``(R,)``.
+
+    Raises:
+        ValueError: a source point outside the unit ball (the table covers the unit ball plus ``radius``).
     """
+    if np.linalg.norm(src, axis=1).max() > 1.0 + 1e-9:
+        raise ValueError("pose_search: the source points must lie inside the unit ball")
     half = int(np.ceil((1.0 + radius) / cell)) + 1
     side = 2 * half + 1
     axis = cell * np.arange(-half, half + 1)
@@ -616,7 +621,7 @@ def polish_scales(options: Any, spacing: float) -> np.ndarray:
 
 class RobustRegistration:
     """The ``register`` default (numpy/scipy): multi-start IRLS on CD-W, Welsch IRLS polish,
-    fixed-scale selection, Adam rounds when doubtful (module docstring).
+    fixed-scale selection; when doubtful, Adam on CD-W, then a pose search (module docstring).
 
     The result's ``info`` holds ``fitness`` and ``inlier_rmse`` (Open3D's definitions, within
     ``fitness_threshold`` in input units; default 3 times the target's median point spacing),

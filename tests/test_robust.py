@@ -297,7 +297,7 @@ def _naive_pose_search(rotations, src, tgt, radius, spacing, nu, cell):
 
 
 def test_pose_search_matches_a_naive_search_and_finds_the_shift():
-    tgt = surface(400, 2) * 0.6
+    tgt = surface(400, 2) * 0.4
     src = tgt[:150] - np.array([0.2, 0.0, -0.1])  # a part of the target, shifted by a lattice step
     rotations = np.concatenate([np.eye(3)[None], spread_rotations(5)])
     settings = {"radius": 0.3, "spacing": 0.1, "nu": 0.05, "cell": 0.05}
@@ -307,6 +307,8 @@ def test_pose_search_matches_a_naive_search_and_finds_the_shift():
     np.testing.assert_allclose(translations, naive_t, atol=1e-9)
     np.testing.assert_allclose(translations[0], [0.2, 0.0, -0.1], atol=1e-9)
     assert costs[0] == costs.min() and costs[0] < 0.3
+    with pytest.raises(ValueError, match="unit ball"):
+        pose_search(rotations, src * 2.0, tgt, **settings)
 
 
 def test_distinct_best_keeps_the_cheapest_of_each_basin():

@@ -168,46 +168,72 @@ def summarize_records(records: Sequence[Mapping[str, Any]]) -> dict[str, dict[st
     return summary
 
 
+def recall_errors(records: Sequence[Mapping[str, Any]], *, relative_alpha: bool = False) -> dict[str, np.ndarray]:
+    """Per method, the errors its alpha-recall counts: l2 pointwise, divided by the diameter if ``relative_alpha``."""
+    errors = {}
+    for method, rows in _by_method(records).items():
+        values = np.array([row["err_pw_l2"] for row in rows], dtype=np.float64)
+        if relative_alpha:
+            values = values / np.array([row["diameter"] for row in rows], dtype=np.float64)
+        errors[method] = values
+    return errors
+
+
 def recall_curves(
     records: Sequence[Mapping[str, Any]], alphas: np.ndarray, *, relative_alpha: bool = False
 ) -> dict[str, list[float]]:
     """Alpha-recall of every method over ``alphas (A,)`` (l2 pointwise error below alpha)."""
-    curves = {}
-    for method, rows in _by_method(records).items():
-        errors = np.array([row["err_pw_l2"] for row in rows], dtype=np.float64)
-        if relative_alpha:
-            errors = errors / np.array([row["diameter"] for row in rows], dtype=np.float64)
-        curves[method] = alpha_recall(errors, alphas).tolist()
-    return curves
+    errors = recall_errors(records, relative_alpha=relative_alpha)
+    return {method: alpha_recall(values, alphas).tolist() for method, values in errors.items()}
 
 
-def curve_shortfalls(alphas: np.ndarray, curves: Mapping[str, Sequence[float]]) -> dict[str, list[float]]:
-    """Where the first method's alpha-recall lies below another's.
+def recall_shortfalls(errors: Mapping[str, Sequence[float]]) -> dict[str, list[tuple[float, float]]]:
+    """Where the first method's alpha-recall lies below another's, over every alpha (not a grid).
+
+    Recall is a step function that changes only just above an error value, so comparing the
+    methods just above every error value of any method covers every alpha.
+
+    Args:
+        errors: method -> its pairs' errors (the first method is the one compared).
 
     Returns:
-        ``{method: [alpha, ...]}`` for every other method: the thresholds at which the first
-        method of ``curves`` recalls fewer pairs (empty: on or above at every alpha).
+        ``{method: [(low, high), ...]}`` for every other method: the alpha intervals
+        ``(low, high]`` on which the first method recalls a smaller fraction of its pairs
+        (empty: on or above at every alpha).
     """
-    names = list(curves)
-    reference = np.asarray(curves[names[0]], dtype=np.float64)
-    return {
-        name: [float(alpha) for alpha in alphas[reference < np.asarray(curves[name], dtype=np.float64) - 1e-12]]
-        for name in names[1:]
-    }
+    names = list(errors)
+    sorted_errors = {name: np.sort(np.asarray(errors[name], dtype=np.float64)) for name in names}
+    steps = np.unique(np.concatenate(list(sorted_errors.values())))
+    probes = np.nextafter(steps, np.inf)
+    ends = np.append(steps[1:], np.inf)
+
+    def recall(values: np.ndarray) -> np.ndarray:
+        return np.searchsorted(values, probes, side="left") / len(values)
+
+    reference = recall(sorted_errors[names[0]])
+    shortfalls = {}
+    for name in names[1:]:
+        below = reference < recall(sorted_errors[name]) - 1e-12
+        intervals: list[tuple[float, float]] = []
+        for index in np.flatnonzero(below):
+            if intervals and intervals[-1][1] == steps[index]:
+                intervals[-1] = (intervals[-1][0], float(ends[index]))
+            else:
+                intervals.append((float(steps[index]), float(ends[index])))
+        shortfalls[name] = intervals
+    return shortfalls
 
 
-def recall_lines(alphas: np.ndarray, curves: Mapping[str, Sequence[float]]) -> list[str]:
+def recall_lines(errors: Mapping[str, Sequence[float]]) -> list[str]:
     """Markdown lines saying where the first method's alpha-recall is on or above each other method's."""
-    names = list(curves)
+    names = list(errors)
     lines = ["## Alpha-recall", ""]
-    for name, below in curve_shortfalls(alphas, curves).items():
-        if below:
-            lines.append(
-                f"- `{names[0]}` is below `{name}` at {len(below)} of {len(alphas)} alphas "
-                f"({min(below):.3g} to {max(below):.3g})"
-            )
+    for name, intervals in recall_shortfalls(errors).items():
+        if intervals:
+            spans = ", ".join(f"({low:.4g}, {high:.4g}]" for low, high in intervals)
+            lines.append(f"- `{names[0]}` is below `{name}` for alpha in {spans}")
         else:
-            lines.append(f"- `{names[0]}` is on or above `{name}` at every one of the {len(alphas)} alphas")
+            lines.append(f"- `{names[0]}` is on or above `{name}` at every alpha")
     return lines
 
 
@@ -283,7 +309,7 @@ def write_results(
     Returns:
         ``{"json": ..., "table": ..., "plot": ...}`` paths. ``results.json`` holds
         ``settings``, ``summary`` (:func:`summarize_records`), ``alpha_recall`` (``alphas``,
-        ``relative``, ``recall`` per method, ``below_first``: :func:`curve_shortfalls`) and
+        ``relative``, ``recall`` per method, ``below_first``: :func:`recall_shortfalls`) and
         ``records``; ``table.md`` ends with :func:`recall_lines` when there are several methods.
     """
     if not records:
@@ -295,6 +321,7 @@ def write_results(
     alphas = np.asarray(alphas, dtype=np.float64)
     summary = summarize_records(records)
     curves = recall_curves(records, alphas, relative_alpha=relative_alpha)
+    errors = recall_errors(records, relative_alpha=relative_alpha)
     paths = {"json": out / "results.json", "table": out / "table.md", "plot": out / "alpha_recall.png"}
     content = {
         "settings": _jsonable(dict(settings or {})),
@@ -303,14 +330,14 @@ def write_results(
             "alphas": alphas.tolist(),
             "relative": relative_alpha,
             "recall": curves,
-            "below_first": curve_shortfalls(alphas, curves),
+            "below_first": recall_shortfalls(errors),
         },
         "records": [_jsonable(record) for record in records],
     }
     paths["json"].write_text(json.dumps(content, indent=1, allow_nan=True))
     table = markdown_tables(summary)
-    if len(curves) > 1:
-        table += "\n" + "\n".join(recall_lines(alphas, curves)) + "\n"
+    if len(errors) > 1:
+        table += "\n" + "\n".join(recall_lines(errors)) + "\n"
     paths["table"].write_text(table)
     _plot(paths["plot"], alphas, curves, summary, relative_alpha)
     return paths

@@ -24,6 +24,9 @@ distances), so a few dozen steps replace hundreds of gradient steps.
    lattice, by a one-sided Welsch cost read from a table) and runs the one-sided IRLS from the
    best distinct poses. Each round ends with the polish, and the selection runs over every
    candidate so far.
+5. Fine polish of the chosen pose when the source lies on the target (fitness at least
+   ``fine_fitness``): the IRLS goes on to ``fine_end`` times the point spacing
+   (:func:`fine_scales`); partly overlapping scans keep the polish's pose.
 """
 
 from __future__ import annotations

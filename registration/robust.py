@@ -632,10 +632,10 @@ def polish_scales(options: Any, spacing: float) -> np.ndarray:
 
 
 def fine_scales(options: Any, spacing: float) -> np.ndarray:
-    """Welsch scales of the fine polish of a pose whose source lies on the target: half of
-    ``polish_steps`` values falling geometrically from ``polish_end`` to ``fine_end`` times the
-    target's point ``spacing`` (the first one excluded: the polish ended there); empty when
-    ``fine_end >= polish_end``."""
+    """Welsch scales of the fine polish of a pose whose source lies on the target: the geometric
+    sequence of ``(polish_steps + 1) // 2`` values from ``polish_end`` to ``fine_end`` times the
+    target's point ``spacing``, less its first (the polish ended there); empty when
+    ``fine_end >= polish_end`` or ``polish_steps`` is 0."""
     if options.polish_steps == 0 or options.fine_end >= options.polish_end:
         return np.zeros(0)
     count = max((options.polish_steps + 1) // 2, 2)
@@ -652,7 +652,8 @@ class RobustRegistration:
     ``converged`` (the final choice is not doubtful), ``confidence`` (``1 - best cost / cost of
     the best distinct basin``; 1 without a rival), ``rounds``, ``starts`` (coarse candidates of
     all rounds: starts x coarse sides), ``candidates`` (those polished: not merged), the
-    selection ``cost``, and ``warnings`` (collinear clouds).
+    selection ``cost``, ``fine`` (the chosen pose got the fine polish) and ``warnings``
+    (collinear clouds).
 
     Args:
         options: :class:`RobustOptions` or a mapping of its fields.

@@ -9,12 +9,12 @@ from __future__ import annotations
 
 from typing import NamedTuple
 
-import fpsample
 import numpy as np
 import torch
 from scipy.spatial import cKDTree
 
 from linereg.checks import check_points, check_same_batch
+from linereg.fps import farthest_point_indices
 
 _CHUNK_BYTES = 64 * 2**20
 
@@ -204,30 +204,9 @@ def farthest_point_sampling(
         raise ValueError(f"start_index must be in [0, {num_points}), got {start_index}")
     array = points if isinstance(points, np.ndarray) else points.detach().cpu().numpy()
     clouds = array.reshape(-1, num_points, 3)
-    idx = np.stack([_fps_single(cloud, n_samples, start_index) for cloud in clouds])
+    idx = np.stack([farthest_point_indices(cloud, n_samples, start_index) for cloud in clouds])
     idx = idx.reshape(*points.shape[:-2], n_samples)
     return idx if isinstance(points, np.ndarray) else torch.from_numpy(idx).to(points.device)
-
-
-def _fps_single(cloud: np.ndarray, n_samples: int, start_index: int | None) -> np.ndarray:
-    """FPS indices (int64) of one ``(N, 3)`` cloud; see :func:`farthest_point_sampling`."""
-    num_points = cloud.shape[0]
-    if start_index is not None or num_points < 64:
-        idx = fpsample.fps_sampling(cloud, n_samples, start_index or 0)
-    else:
-        height = int(np.clip(round(np.log2(num_points) / 2 - 1.5), 1, 10))
-        idx = fpsample.bucket_fps_kdline_sampling(cloud, n_samples, height, 0)
-    return _unique_fill(idx.astype(np.int64), num_points)
-
-
-def _unique_fill(idx: np.ndarray, num_points: int) -> np.ndarray:
-    """Replace repeated indices (clouds with fewer distinct points than samples) by unused ones."""
-    _, first = np.unique(idx, return_index=True)
-    if len(first) == len(idx):
-        return idx
-    kept = idx[np.sort(first)]
-    unused = np.setdiff1d(np.arange(num_points), kept)[: len(idx) - len(kept)]
-    return np.concatenate([kept, unused])
 
 
 def resample_indices(

@@ -25,9 +25,10 @@ from typing import Any
 import numpy as np
 
 from linereg.checks import check_points, check_transform, is_tensor
+from linereg.fps import farthest_point_subset as fps
 from linereg.io import PointCloud, read_point_cloud
 from linereg.registration.methods import METHODS, MethodResult, run_centered
-from linereg.registration.robust import alignment_quality, fps, point_spacing
+from linereg.registration.robust import alignment_quality, point_spacing
 from linereg.registry import UnknownNameError
 
 DEFAULT_METHOD = "robust"

@@ -19,8 +19,14 @@ distances), so a few dozen steps replace hundreds of gradient steps.
    (:func:`welsch_irls`, :func:`polish_scales`).
 4. Select the candidate with the lowest :func:`fixed_scale_cost`. When the choice is doubtful
    (a distinct rival nearly as good, a high cost, a low fitness), round 2 runs Adam on CD-W
-   (:func:`cdw_adam`) from the same starts, then round 3 from the 24 cube rotations, each
-   followed by the polish, and the selection runs over every candidate so far.
+   (:func:`cdw_adam`) from the same starts; still doubtful, round 3 searches every pose of a
+   grid (:func:`pose_search`: hundreds of rotations, and for each the best translation of a
+   lattice, by a one-sided Welsch cost read from a table) and runs the one-sided IRLS from the
+   best distinct poses. Each round ends with the polish, and the selection runs over every
+   candidate so far.
+5. Fine polish of the chosen pose when the source lies on the target (fitness at least
+   ``fine_fitness``): the IRLS goes on to ``fine_end`` times the point spacing
+   (:func:`fine_scales`); partly overlapping scans keep the polish's pose.
 """
 
 from __future__ import annotations
@@ -31,25 +37,15 @@ from collections.abc import Mapping
 from dataclasses import dataclass, fields
 from typing import Any
 
-import fpsample
 import numpy as np
 from scipy.spatial import cKDTree
 
 from linereg.checks import check_points, check_transform
+from linereg.fps import farthest_point_subset as fps
 from linereg.registration.methods import METHODS, MethodResult, run_centered
 
 Poses = tuple[np.ndarray, np.ndarray]
 """``(R (K, 3, 3), t (K, 3))``: ``K`` rigid transforms ``x -> R x + t``."""
-
-
-def fps(points: np.ndarray, count: int | None) -> np.ndarray:
-    """The farthest-point-sampling subset of ``points (N, 3)`` with ``count`` points (all if ``None``
-    or ``N <= count``); ``fpsample``'s bucket variant, as :func:`linereg.pointcloud.farthest_point_sampling`."""
-    if count is None or len(points) <= count:
-        return points
-    height = int(np.clip(round(np.log2(len(points)) / 2 - 1.5), 1, 10))
-    idx = fpsample.bucket_fps_kdline_sampling(np.ascontiguousarray(points, dtype=np.float32), count, height, 0)
-    return points[np.unique(idx.astype(np.int64))]
 
 
 def as_matrices(poses: Poses) -> np.ndarray:
@@ -365,6 +361,81 @@ def cube_rotations() -> np.ndarray:
     return np.stack(rotations)
 
 
+def spread_rotations(count: int) -> np.ndarray:
+    """``count`` rotations spread evenly over SO(3) (the super-Fibonacci spiral of Alexa, CVPR
+    2022: deterministic, no clusters), as ``(count, 3, 3)`` matrices."""
+    if count < 1:
+        raise ValueError(f"count must be >= 1, got {count}")
+    s = np.arange(count) + 0.5
+    small, large = np.sqrt(s / count), np.sqrt(1.0 - s / count)
+    alpha, beta = 2.0 * np.pi * s / np.sqrt(2.0), 2.0 * np.pi * s / 1.533751168755204288118041
+    x, y, z, w = small * np.sin(alpha), small * np.cos(alpha), large * np.sin(beta), large * np.cos(beta)
+    return np.stack(
+        [
+            np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)], axis=-1),
+            np.stack([2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)], axis=-1),
+            np.stack([2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)], axis=-1),
+        ],
+        axis=1,
+    )
+
+
+def pose_search(
+    rotations: np.ndarray, src: np.ndarray, tgt: np.ndarray, *, radius: float, spacing: float, nu: float, cell: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """For every rotation, the translation of a lattice with the lowest one-sided Welsch cost.
+
+    The cost ``mean_i 1 - exp(-d_i^2 / 2 nu^2)`` of the moved source points' distances ``d_i`` to
+    the target is read from a table of its value at the centres of cubic cells of side ``cell``
+    (each point counts in its nearest cell), so that every pose costs one look-up per point.
+
+    Args:
+        rotations: ``(R, 3, 3)``.
+        src: ``(N, 3)`` source points inside the unit ball; tgt: ``(M, 3)`` target points.
+        radius: largest translation; spacing: step of the translation lattice (rounded to whole cells).
+        nu: Welsch scale of the cost; cell: side of the table's cells.
+
+    Returns:
+        ``translations (R, 3)`` and their costs ``(R,)``.
+
+    Raises:
+        ValueError: a source point outside the unit ball (the table covers the unit ball plus ``radius``).
+    """
+    if np.linalg.norm(src, axis=1).max() > 1.0 + 1e-9:
+        raise ValueError("pose_search: the source points must lie inside the unit ball")
+    half = int(np.ceil((1.0 + radius) / cell)) + 1
+    side = 2 * half + 1
+    axis = cell * np.arange(-half, half + 1)
+    centres = np.stack(np.meshgrid(axis, axis, axis, indexing="ij"), axis=-1).reshape(-1, 3)
+    distances, _ = cKDTree(tgt).query(centres, distance_upper_bound=_REACH * nu, workers=1)
+    table = 1.0 - _welsch_weights(distances, nu)
+    step = max(round(spacing / cell), 1)
+    reach = int(radius / (step * cell) + 1e-9)
+    lattice = step * np.stack(np.meshgrid(*[np.arange(-reach, reach + 1)] * 3, indexing="ij"), axis=-1).reshape(-1, 3)
+    lattice = lattice[np.linalg.norm(lattice * cell, axis=1) <= radius + 1e-9]
+    shift = (lattice[:, 0] * side + lattice[:, 1]) * side + lattice[:, 2]
+    translations, costs = np.empty((len(rotations), 3)), np.empty(len(rotations))
+    for chunk in np.array_split(np.arange(len(rotations)), max(len(rotations) // 32, 1)):
+        cells = np.rint(src @ rotations[chunk].transpose(0, 2, 1) / cell).astype(np.int64) + half
+        index = (cells[..., 0] * side + cells[..., 1]) * side + cells[..., 2]
+        cost = table[index[:, None, :] + shift[None, :, None]].mean(axis=2)
+        best = cost.argmin(axis=1)
+        translations[chunk] = lattice[best] * cell
+        costs[chunk] = cost[np.arange(len(chunk)), best]
+    return translations, costs
+
+
+def distinct_best(rotations: np.ndarray, costs: np.ndarray, count: int, gap_deg: float) -> np.ndarray:
+    """Indices of up to ``count`` lowest-cost rotations, each more than ``gap_deg`` from every one before it."""
+    chosen: list[int] = []
+    for index in np.argsort(costs, kind="stable"):
+        if not chosen or (rotation_gap_deg(rotations[chosen], rotations[index]) > gap_deg).all():
+            chosen.append(int(index))
+            if len(chosen) == count:
+                break
+    return np.array(chosen, dtype=np.int64)
+
+
 def axis_rotations(count: int, angle_deg: float = 90.0) -> np.ndarray:
     """The identity, then rotations by ``angle_deg`` about +x, +y, +z, -x, -y, -z (the first
     ``count``, 1..7): the first-round starts, as ``(count, 3, 3)`` matrices."""
@@ -441,19 +512,29 @@ class RobustOptions:
         polish_nu: first IRLS scale.
         polish_end: last IRLS scale, times the target's median point spacing.
         polish_settle: most further IRLS steps at the last scale, each candidate until it stops moving.
+        fine_end: when the chosen pose has a fitness of at least ``fine_fitness`` (the source lies
+            on the target: a view inside the whole), its polish goes on with scales falling from
+            ``polish_end`` to this, times the spacing (:func:`fine_scales`). A partial overlap
+            (real scans: fitness 0.70-0.73 on 3DMatch) stays at ``polish_end``.
+        fine_fitness: that fitness, within ``fitness_spacings`` target point spacings.
         select_nu: scale of the selection cost :func:`fixed_scale_cost`.
         doubt_ratio: the pose is doubtful when another candidate more than ``distinct_deg``
             away costs less than this factor times the best cost, or the best cost exceeds
             ``max_cost``, or fewer than ``min_fitness`` of the source points lie within
             ``fitness_spacings`` target point spacings of the target. A doubtful pose sends the
-            solver to the next round: 2, Adam from the same starts; 3, Adam from the 24 cube
-            rotations with ``escalate_factor`` times the steps (``rounds`` caps them).
+            solver to the next round: 2, Adam from the same starts; 3, the pose search
+            (``rounds`` caps them).
         distinct_deg: rotation gap between two candidates that count as different basins.
         max_cost: selection cost above which the fit itself is doubtful.
         min_fitness: fitness below which the fit is doubtful (a right pose of a view inside the
             whole target scores 0.99-1, a wrong basin 0.7-0.87: docs/registration.md).
         fitness_spacings: inlier distance of that fitness, in target point spacings.
-        escalate_factor: Adam steps multiplier of the third round.
+        search_rotations: rotations of the third round's pose search (:func:`spread_rotations`).
+        search_radius: largest translation of that search; search_spacing: its translation step.
+        search_points: FPS size of the source in the search.
+        search_nu: Welsch scale of the search's cost; search_cell: cell side of its cost table.
+        search_keep: best distinct poses of the search (``distinct_deg`` apart) from which the
+            one-sided coarse IRLS runs.
         rounds: most rounds (1..3).
     """
 
@@ -469,13 +550,21 @@ class RobustOptions:
     polish_nu: float = 0.05
     polish_end: float = 0.3
     polish_settle: int = 60
+    fine_end: float = 0.1
+    fine_fitness: float = 0.95
     select_nu: float = 0.03
     doubt_ratio: float = 1.25
     distinct_deg: float = 10.0
     max_cost: float = 0.5
     min_fitness: float = 0.985
     fitness_spacings: float = 3.0
-    escalate_factor: int = 2
+    search_rotations: int = 600
+    search_radius: float = 0.5
+    search_spacing: float = 0.1
+    search_points: int = 64
+    search_nu: float = 0.07
+    search_cell: float = 0.05
+    search_keep: int = 24
     rounds: int = 3
 
     def __post_init__(self) -> None:
@@ -485,10 +574,18 @@ class RobustOptions:
             "explore_lr",
             "polish_nu",
             "polish_end",
+            "fine_end",
             "select_nu",
             "distinct_deg",
             "max_cost",
             "fitness_spacings",
+            "search_radius",
+            "search_rotations",
+            "search_spacing",
+            "search_points",
+            "search_nu",
+            "search_cell",
+            "search_keep",
         )
         for name in positive:
             if not getattr(self, name) > 0:
@@ -496,12 +593,11 @@ class RobustOptions:
         for name in ("coarse_steps", "explore_steps", "polish_steps", "polish_settle", "merge_distance"):
             if getattr(self, name) < 0:
                 raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
-        if not 0 <= self.min_fitness <= 1:
-            raise ValueError(f"min_fitness must be in [0, 1], got {self.min_fitness}")
+        for name in ("min_fitness", "fine_fitness"):
+            if not 0 <= getattr(self, name) <= 1:
+                raise ValueError(f"{name} must be in [0, 1], got {getattr(self, name)}")
         if self.doubt_ratio < 1:
             raise ValueError(f"doubt_ratio must be >= 1, got {self.doubt_ratio}")
-        if self.escalate_factor < 1:
-            raise ValueError(f"escalate_factor must be >= 1, got {self.escalate_factor}")
         if self.rounds not in (1, 2, 3):
             raise ValueError(f"rounds must be 1, 2 or 3, got {self.rounds}")
         sides = tuple(self.coarse_sides)
@@ -535,16 +631,29 @@ def polish_scales(options: Any, spacing: float) -> np.ndarray:
     return np.concatenate([falling, np.full(options.polish_steps - len(falling), fine)])[: options.polish_steps]
 
 
+def fine_scales(options: Any, spacing: float) -> np.ndarray:
+    """Welsch scales of the fine polish of a pose whose source lies on the target: the geometric
+    sequence of ``(polish_steps + 1) // 2`` values from ``polish_end`` to ``fine_end`` times the
+    target's point ``spacing``, less its first (the polish ended there); empty when
+    ``fine_end >= polish_end`` or ``polish_steps`` is 0."""
+    if options.polish_steps == 0 or options.fine_end >= options.polish_end:
+        return np.zeros(0)
+    count = max((options.polish_steps + 1) // 2, 2)
+    start = min(options.polish_end * spacing, options.polish_nu)
+    return np.geomspace(start, min(options.fine_end * spacing, start), count)[1:]
+
+
 class RobustRegistration:
     """The ``register`` default (numpy/scipy): multi-start IRLS on CD-W, Welsch IRLS polish,
-    fixed-scale selection, Adam rounds when doubtful (module docstring).
+    fixed-scale selection; when doubtful, Adam on CD-W, then a pose search (module docstring).
 
     The result's ``info`` holds ``fitness`` and ``inlier_rmse`` (Open3D's definitions, within
     ``fitness_threshold`` in input units; default 3 times the target's median point spacing),
     ``converged`` (the final choice is not doubtful), ``confidence`` (``1 - best cost / cost of
     the best distinct basin``; 1 without a rival), ``rounds``, ``starts`` (coarse candidates of
     all rounds: starts x coarse sides), ``candidates`` (those polished: not merged), the
-    selection ``cost``, and ``warnings`` (collinear clouds).
+    selection ``cost``, ``fine`` (the chosen pose got the fine polish) and ``warnings``
+    (collinear clouds).
 
     Args:
         options: :class:`RobustOptions` or a mapping of its fields.
@@ -602,11 +711,24 @@ class RobustRegistration:
         """Round ``number`` (1, 2, 3): coarse stage from its starts, then the polish: candidates,
         their costs ``(K,)`` and the number of coarse candidates."""
         options = self.options
-        starts = cube_rotations() if number == 3 else axis_rotations(options.starts)
-        sides = np.repeat([side == "both" for side in options.coarse_sides], len(starts))
-        rotations = np.tile(starts, (len(options.coarse_sides), 1, 1))
-        initial = (rotations, np.zeros((len(rotations), 3)))
-        if number == 1:
+        if number == 3:
+            initial, sides = self._searched_poses(src_coarse, tgt_coarse)
+        else:
+            starts = axis_rotations(options.starts)
+            sides = np.repeat([side == "both" for side in options.coarse_sides], len(starts))
+            initial = (np.tile(starts, (len(options.coarse_sides), 1, 1)), np.zeros((len(sides), 3)))
+        if number == 2:
+            poses, merged = cdw_adam(
+                initial,
+                src_coarse,
+                tgt_coarse,
+                sides,
+                options.coarse_nu0,
+                options.explore_steps,
+                options.explore_lr,
+                merge_distance=options.merge_distance,
+            )
+        else:
             poses, merged = cdw_irls(
                 initial,
                 src_coarse,
@@ -616,23 +738,28 @@ class RobustRegistration:
                 options.coarse_steps,
                 merge_distance=options.merge_distance,
             )
-        else:
-            steps = options.explore_steps * (options.escalate_factor if number == 3 else 1)
-            poses, merged = cdw_adam(
-                initial,
-                src_coarse,
-                tgt_coarse,
-                sides,
-                options.coarse_nu0,
-                steps,
-                options.explore_lr,
-                merge_distance=options.merge_distance,
-            )
         poses = welsch_irls((poses[0][~merged], poses[1][~merged]), src, tgt_tree, nus, options.polish_settle)
         return poses, fixed_scale_cost(poses, src, tgt_tree, options.select_nu), len(sides)
 
-    def _doubt(self, poses: Poses, costs: np.ndarray, src, tgt_tree, inlier_distance) -> tuple[bool, float]:
-        """``(doubtful, confidence)`` of the lowest-cost candidate (see :class:`RobustOptions`)."""
+    def _searched_poses(self, src_coarse, tgt_coarse) -> tuple[Poses, np.ndarray]:
+        """The third round's starts: the best distinct poses of :func:`pose_search`, each with the
+        one-sided coarse loss (the search places the view; the two-sided loss would pull it to cover the target)."""
+        options = self.options
+        rotations = spread_rotations(options.search_rotations)
+        translations, costs = pose_search(
+            rotations,
+            fps(src_coarse, options.search_points),
+            tgt_coarse,
+            radius=options.search_radius,
+            spacing=options.search_spacing,
+            nu=options.search_nu,
+            cell=options.search_cell,
+        )
+        best = distinct_best(rotations, costs, options.search_keep, options.distinct_deg)
+        return (rotations[best], translations[best]), np.zeros(len(best), dtype=bool)
+
+    def _doubt(self, poses: Poses, costs: np.ndarray, src, tgt_tree, inlier_distance) -> tuple[bool, float, float]:
+        """``(doubtful, confidence, fitness)`` of the lowest-cost candidate (see :class:`RobustOptions`)."""
         options = self.options
         best = int(costs.argmin())
         distances, _ = tgt_tree.query(apply((poses[0][best : best + 1], poses[1][best : best + 1]), src)[0], workers=1)
@@ -640,9 +767,10 @@ class RobustRegistration:
         poor = float(costs[best]) > options.max_cost or fitness < options.min_fitness
         rivals = rotation_gap_deg(poses[0], poses[0][best]) > options.distinct_deg
         if not rivals.any():
-            return poor, 1.0
+            return poor, 1.0, fitness
         rival = float(costs[rivals].min())
-        return poor or rival < options.doubt_ratio * float(costs[best]), 1.0 - float(costs[best]) / max(rival, 1e-12)
+        doubtful = poor or rival < options.doubt_ratio * float(costs[best])
+        return doubtful, 1.0 - float(costs[best]) / max(rival, 1e-12), fitness
 
     def _solve(self, src, tgt, src_normals, tgt_normals) -> MethodResult:
         options = self.options
@@ -655,16 +783,21 @@ class RobustRegistration:
         nus = polish_scales(options, spacing)
         inlier_distance = options.fitness_spacings * spacing
         poses, costs, starts = self._round(1, src_s, tgt_tree, src_coarse, tgt_coarse, nus)
-        doubtful, confidence = self._doubt(poses, costs, src_s, tgt_tree, inlier_distance)
+        doubtful, confidence, fitness = self._doubt(poses, costs, src_s, tgt_tree, inlier_distance)
         rounds = 1
         while doubtful and rounds < options.rounds:
             rounds += 1
             more, more_costs, more_starts = self._round(rounds, src_s, tgt_tree, src_coarse, tgt_coarse, nus)
             poses = tuple(np.concatenate([a, b]) for a, b in zip(poses, more, strict=True))
             costs, starts = np.concatenate([costs, more_costs]), starts + more_starts
-            doubtful, confidence = self._doubt(poses, costs, src_s, tgt_tree, inlier_distance)
+            doubtful, confidence, fitness = self._doubt(poses, costs, src_s, tgt_tree, inlier_distance)
         best = int(costs.argmin())
-        transform = as_matrices((poses[0][best : best + 1], poses[1][best : best + 1]))[0]
+        chosen = (poses[0][best : best + 1], poses[1][best : best + 1])
+        fine_nus = fine_scales(options, spacing)
+        fine = fitness >= options.fine_fitness and len(fine_nus) > 0
+        if fine:
+            chosen = welsch_irls(chosen, src_s, tgt_tree, fine_nus, options.polish_settle)
+        transform = as_matrices(chosen)[0]
         transform[:3, 3] *= radius
         info = {
             "converged": not doubtful,
@@ -673,6 +806,7 @@ class RobustRegistration:
             "rounds": rounds,
             "starts": starts,
             "candidates": len(costs),
+            "fine": fine,
         }
         return MethodResult(transform=transform, info=info)
 

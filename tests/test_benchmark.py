@@ -33,6 +33,8 @@ from linereg.train.benchmark import (
     build_methods,
     expand_folder_argument,
     object_diameter,
+    recall_lines,
+    recall_shortfalls,
     run_benchmark,
     write_results,
 )
@@ -99,6 +101,19 @@ def test_write_results_writes_json_table_and_plot(tiny_records, tmp_path):
     assert "| icp_point |" in table and "| plane |" in table
     assert "Median" in table and "time mean (s)" in table
     assert paths["plot"].read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    errors = {name: [r["err_pw_l2"] for r in tiny_records if r["method"] == name] for name in ("icp_point", "plane")}
+    assert recall["below_first"]["plane"] == [list(span) for span in recall_shortfalls(errors)["plane"]]
+    assert ("on or above `plane` at every alpha" in table) == (not recall["below_first"]["plane"])
+
+
+def test_recall_shortfalls_cover_every_alpha_not_a_grid():
+    errors = {"ours": [0.5, 0.5, 2.0, 3.0], "icp": [0.4, 0.6, 1.0, 9.0], "fgr": [5.0, 6.0]}
+    # icp recalls 1/4 on (0.4, 0.5] (ours 0) and 3/4 on (1.0, 2.0] (ours 2/4)
+    assert recall_shortfalls(errors) == {"icp": [(0.4, 0.5), (1.0, 2.0)], "fgr": []}
+    lines = recall_lines(errors)
+    assert lines[2] == "- `ours` is below `icp` for alpha in (0.4, 0.5], (1, 2]"
+    assert lines[3] == "- `ours` is on or above `fgr` at every alpha"
+    assert recall_shortfalls({"ours": [0.1], "same": [0.1]}) == {"same": []}
 
 
 def test_relative_alpha_divides_by_the_diameter(tiny_records, tmp_path):

@@ -168,17 +168,73 @@ def summarize_records(records: Sequence[Mapping[str, Any]]) -> dict[str, dict[st
     return summary
 
 
+def recall_errors(records: Sequence[Mapping[str, Any]], *, relative_alpha: bool = False) -> dict[str, np.ndarray]:
+    """Per method, the errors its alpha-recall counts: l2 pointwise, divided by the diameter if ``relative_alpha``."""
+    errors = {}
+    for method, rows in _by_method(records).items():
+        values = np.array([row["err_pw_l2"] for row in rows], dtype=np.float64)
+        if relative_alpha:
+            values = values / np.array([row["diameter"] for row in rows], dtype=np.float64)
+        errors[method] = values
+    return errors
+
+
 def recall_curves(
     records: Sequence[Mapping[str, Any]], alphas: np.ndarray, *, relative_alpha: bool = False
 ) -> dict[str, list[float]]:
     """Alpha-recall of every method over ``alphas (A,)`` (l2 pointwise error below alpha)."""
-    curves = {}
-    for method, rows in _by_method(records).items():
-        errors = np.array([row["err_pw_l2"] for row in rows], dtype=np.float64)
-        if relative_alpha:
-            errors = errors / np.array([row["diameter"] for row in rows], dtype=np.float64)
-        curves[method] = alpha_recall(errors, alphas).tolist()
-    return curves
+    errors = recall_errors(records, relative_alpha=relative_alpha)
+    return {method: alpha_recall(values, alphas).tolist() for method, values in errors.items()}
+
+
+def recall_shortfalls(errors: Mapping[str, Sequence[float]]) -> dict[str, list[tuple[float, float]]]:
+    """Where the first method's alpha-recall lies below another's, over every alpha (not a grid).
+
+    Recall is a step function that changes only just above an error value, so comparing the
+    methods just above every error value of any method covers every alpha.
+
+    Args:
+        errors: method -> its pairs' errors (the first method is the one compared).
+
+    Returns:
+        ``{method: [(low, high), ...]}`` for every other method: the alpha intervals
+        ``(low, high]`` on which the first method recalls a smaller fraction of its pairs
+        (empty: on or above at every alpha).
+    """
+    names = list(errors)
+    sorted_errors = {name: np.sort(np.asarray(errors[name], dtype=np.float64)) for name in names}
+    steps = np.unique(np.concatenate(list(sorted_errors.values())))
+    probes = np.nextafter(steps, np.inf)
+    ends = np.append(steps[1:], np.inf)
+
+    def recall(values: np.ndarray) -> np.ndarray:
+        return np.searchsorted(values, probes, side="left") / len(values)
+
+    reference = recall(sorted_errors[names[0]])
+    shortfalls = {}
+    for name in names[1:]:
+        below = reference < recall(sorted_errors[name]) - 1e-12
+        intervals: list[tuple[float, float]] = []
+        for index in np.flatnonzero(below):
+            if intervals and intervals[-1][1] == steps[index]:
+                intervals[-1] = (intervals[-1][0], float(ends[index]))
+            else:
+                intervals.append((float(steps[index]), float(ends[index])))
+        shortfalls[name] = intervals
+    return shortfalls
+
+
+def recall_lines(errors: Mapping[str, Sequence[float]]) -> list[str]:
+    """Markdown lines saying where the first method's alpha-recall is on or above each other method's."""
+    names = list(errors)
+    lines = ["## Alpha-recall", ""]
+    for name, intervals in recall_shortfalls(errors).items():
+        if intervals:
+            spans = ", ".join(f"({low:.4g}, {high:.4g}]" for low, high in intervals)
+            lines.append(f"- `{names[0]}` is below `{name}` for alpha in {spans}")
+        else:
+            lines.append(f"- `{names[0]}` is on or above `{name}` at every alpha")
+    return lines
 
 
 def markdown_tables(summary: Mapping[str, Mapping[str, float]]) -> str:
@@ -253,7 +309,8 @@ def write_results(
     Returns:
         ``{"json": ..., "table": ..., "plot": ...}`` paths. ``results.json`` holds
         ``settings``, ``summary`` (:func:`summarize_records`), ``alpha_recall`` (``alphas``,
-        ``relative``, ``recall`` per method) and ``records``.
+        ``relative``, ``recall`` per method, ``below_first``: :func:`recall_shortfalls`) and
+        ``records``; ``table.md`` ends with :func:`recall_lines` when there are several methods.
     """
     if not records:
         raise ValueError("no records to write")
@@ -264,15 +321,24 @@ def write_results(
     alphas = np.asarray(alphas, dtype=np.float64)
     summary = summarize_records(records)
     curves = recall_curves(records, alphas, relative_alpha=relative_alpha)
+    errors = recall_errors(records, relative_alpha=relative_alpha)
     paths = {"json": out / "results.json", "table": out / "table.md", "plot": out / "alpha_recall.png"}
     content = {
         "settings": _jsonable(dict(settings or {})),
         "summary": summary,
-        "alpha_recall": {"alphas": alphas.tolist(), "relative": relative_alpha, "recall": curves},
+        "alpha_recall": {
+            "alphas": alphas.tolist(),
+            "relative": relative_alpha,
+            "recall": curves,
+            "below_first": recall_shortfalls(errors),
+        },
         "records": [_jsonable(record) for record in records],
     }
     paths["json"].write_text(json.dumps(content, indent=1, allow_nan=True))
-    paths["table"].write_text(markdown_tables(summary))
+    table = markdown_tables(summary)
+    if len(errors) > 1:
+        table += "\n" + "\n".join(recall_lines(errors)) + "\n"
+    paths["table"].write_text(table)
     _plot(paths["plot"], alphas, curves, summary, relative_alpha)
     return paths
 

@@ -54,13 +54,7 @@ SMALL_MODELS = {
 SUPERVISED_LOSS = {"dcp_v1": "gt_dcp", "dcp_v2": "gt_dcp", "rpmnet": "gt_rpmnet", "fmr": "gt_fmr"}
 
 
-@pytest.fixture(autouse=True, scope="module")
-def _one_thread():
-    """Tiny tensors: one intra-op thread avoids stalls on a busy machine."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 @dataclass(frozen=True)

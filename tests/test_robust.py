@@ -38,25 +38,8 @@ from linereg.registration.robust import (
     welsch_irls,
 )
 from linereg.registration.solvers import start_poses
-from linereg.se3 import euler_to_rotmat, rt_to_matrix, se3_exp
-
-
-def surface(n: int, seed: int) -> np.ndarray:
-    """Samples of an asymmetric bumpy ellipsoid (float64, unit scale)."""
-    rng = np.random.default_rng(seed)
-    x = rng.normal(size=(n, 3))
-    x /= np.linalg.norm(x, axis=1, keepdims=True)
-    bump = 1.0 + 0.25 * np.sin(3.0 * x[:, 0]) * np.cos(2.0 * x[:, 1])
-    return x * bump[:, None] * np.array([1.4, 1.0, 0.7])
-
-
-def pose(angles_deg, t) -> np.ndarray:
-    R = euler_to_rotmat(torch.tensor(angles_deg, dtype=torch.float64) * math.pi / 180)
-    return rt_to_matrix(R, torch.tensor(t, dtype=torch.float64)).numpy()
-
-
-def apply(T: np.ndarray, x: np.ndarray) -> np.ndarray:
-    return x @ T[:3, :3].T + T[:3, 3]
+from linereg.se3 import se3_exp
+from tests.test_solvers_robust import apply, pose, surface
 
 
 def error_deg(T: np.ndarray, truth: np.ndarray) -> float:

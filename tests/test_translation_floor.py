@@ -15,13 +15,7 @@ from linereg.random_poses import random_transform_paper
 from linereg.se3 import transform_normals, transform_points
 from linereg.structures import PairBatch
 
-
-@pytest.fixture(autouse=True, scope="module")
-def _one_thread():
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 def fibonacci_sphere(count: int) -> torch.Tensor:

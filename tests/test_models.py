@@ -184,16 +184,21 @@ class TestContract:
         with pytest.raises(ValueError, match=r"batch\.src_xyz must hold at least 2 point\(s\), got 1"):
             small_model(name)(batch)
 
-    def test_permutation_invariance(self, name):
-        model = small_model(name).eval()
+    @pytest.mark.parametrize("init_seed", [0, 1, 2])
+    def test_permutation_invariance(self, name, init_seed):
+        # In float64: in float32, GroupNorm's sums change with the point order by ~1e-7, and
+        # FMR's Gauss-Newton steps amplify that to 2-4e-4 for some initialisations.
+        torch.manual_seed(init_seed)
+        model = small_model(name).eval().double()
         batch = make_pair(2, 64, seed=3)
+        batch = PairBatch(*(t.double() for t in (batch.src_xyz, batch.tgt_xyz, batch.src_normals, batch.tgt_normals)))
         shuffled = PairBatch(
             batch.src_xyz.flip(1),
             batch.tgt_xyz.roll(5, dims=1),
             batch.src_normals.flip(1),
             batch.tgt_normals.roll(5, dims=1),
         )
-        torch.testing.assert_close(model(shuffled).transform, model(batch).transform, atol=2e-4, rtol=0)
+        torch.testing.assert_close(model(shuffled).transform, model(batch).transform, atol=1e-9, rtol=0)
 
     def test_gradients_reach_every_parameter(self, name):
         model = small_model(name).train()

@@ -22,8 +22,12 @@ distances), so a few dozen steps replace hundreds of gradient steps.
    (:func:`cdw_adam`) from the same starts; still doubtful, round 3 searches every pose of a
    grid (:func:`pose_search`: hundreds of rotations, and for each the best translation of a
    lattice, by a one-sided Welsch cost read from a table) and runs the one-sided IRLS from the
-   best distinct poses. Each round ends with the polish, and the selection runs over every
-   candidate so far.
+   best distinct poses. Each round ends with the polish, and the doubt test runs over every
+   candidate so far. After a doubtful first round the final choice among all candidates is the
+   lowest value of the polish's own objective (Welsch at its last scale, ``polish_end`` point
+   spacings; ``doubtful_select``): every candidate is a local minimum of that objective, while
+   the coarser selection scale rewards a wrong pose that brings more of a partly overlapping
+   view near the target (docs/registration.md).
 5. Fine polish of the chosen pose when the source lies on the target (fitness at least
    ``fine_fitness``): the IRLS goes on to ``fine_end`` times the point spacing
    (:func:`fine_scales`); partly overlapping scans keep the polish's pose.
@@ -518,6 +522,9 @@ class RobustOptions:
             (real scans: fitness 0.70-0.73 on 3DMatch) stays at ``polish_end``.
         fine_fitness: that fitness, within ``fitness_spacings`` target point spacings.
         select_nu: scale of the selection cost :func:`fixed_scale_cost`.
+        doubtful_select: the final choice after a doubtful first round: ``"polish"``, the
+            lowest polish objective (:func:`fixed_scale_cost` at the polish's last scale,
+            ``polish_end`` target point spacings), or ``"fixed"``, the lowest cost at ``select_nu``.
         doubt_ratio: the pose is doubtful when another candidate more than ``distinct_deg``
             away costs less than this factor times the best cost, or the best cost exceeds
             ``max_cost``, or fewer than ``min_fitness`` of the source points lie within
@@ -553,6 +560,7 @@ class RobustOptions:
     fine_end: float = 0.1
     fine_fitness: float = 0.95
     select_nu: float = 0.03
+    doubtful_select: str = "polish"
     doubt_ratio: float = 1.25
     distinct_deg: float = 10.0
     max_cost: float = 0.5
@@ -598,6 +606,8 @@ class RobustOptions:
                 raise ValueError(f"{name} must be in [0, 1], got {getattr(self, name)}")
         if self.doubt_ratio < 1:
             raise ValueError(f"doubt_ratio must be >= 1, got {self.doubt_ratio}")
+        if self.doubtful_select not in ("polish", "fixed"):
+            raise ValueError(f"doubtful_select must be 'polish' or 'fixed', got {self.doubtful_select!r}")
         if self.rounds not in (1, 2, 3):
             raise ValueError(f"rounds must be 1, 2 or 3, got {self.rounds}")
         sides = tuple(self.coarse_sides)
@@ -650,9 +660,11 @@ class RobustRegistration:
     The result's ``info`` holds ``fitness`` and ``inlier_rmse`` (Open3D's definitions, within
     ``fitness_threshold`` in input units; default 3 times the target's median point spacing),
     ``converged`` (the final choice is not doubtful), ``confidence`` (``1 - best cost / cost of
-    the best distinct basin``; 1 without a rival), ``rounds``, ``starts`` (coarse candidates of
-    all rounds: starts x coarse sides), ``candidates`` (those polished: not merged), the
-    selection ``cost``, ``fine`` (the chosen pose got the fine polish) and ``warnings``
+    the best distinct basin``, by the cost that chose it; 1 without a rival), ``rounds``, ``starts``
+    (coarse candidates of all rounds: starts x coarse sides), ``candidates`` (those polished: not
+    merged), the chosen pose's ``cost`` at ``select_nu``, ``selection`` (``"fixed"``, or
+    ``"polish"`` after a doubtful first round: ``doubtful_select``), ``fine`` (the chosen pose got
+    the fine polish) and ``warnings``
     (collinear clouds).
 
     Args:
@@ -758,19 +770,23 @@ class RobustRegistration:
         best = distinct_best(rotations, costs, options.search_keep, options.distinct_deg)
         return (rotations[best], translations[best]), np.zeros(len(best), dtype=bool)
 
-    def _doubt(self, poses: Poses, costs: np.ndarray, src, tgt_tree, inlier_distance) -> tuple[bool, float, float]:
-        """``(doubtful, confidence, fitness)`` of the lowest-cost candidate (see :class:`RobustOptions`)."""
+    def _doubt(
+        self, poses: Poses, costs: np.ndarray, src, tgt_tree, inlier_distance, best: int | None = None, ranking=None
+    ) -> tuple[bool, float, float]:
+        """``(doubtful, confidence, fitness)`` of candidate ``best`` (default: the lowest cost), judged
+        by the selection ``costs (K,)`` (see :class:`RobustOptions`); ``confidence`` compares the
+        values of ``ranking (K,)``, the cost that chose it (default: ``costs``)."""
         options = self.options
-        best = int(costs.argmin())
+        best = int(costs.argmin()) if best is None else best
+        ranking = costs if ranking is None else ranking
         distances, _ = tgt_tree.query(apply((poses[0][best : best + 1], poses[1][best : best + 1]), src)[0], workers=1)
         fitness = float((distances <= inlier_distance).mean())
         poor = float(costs[best]) > options.max_cost or fitness < options.min_fitness
         rivals = rotation_gap_deg(poses[0], poses[0][best]) > options.distinct_deg
         if not rivals.any():
             return poor, 1.0, fitness
-        rival = float(costs[rivals].min())
-        doubtful = poor or rival < options.doubt_ratio * float(costs[best])
-        return doubtful, 1.0 - float(costs[best]) / max(rival, 1e-12), fitness
+        doubtful = poor or float(costs[rivals].min()) < options.doubt_ratio * float(costs[best])
+        return doubtful, 1.0 - float(ranking[best]) / max(float(ranking[rivals].min()), 1e-12), fitness
 
     def _solve(self, src, tgt, src_normals, tgt_normals) -> MethodResult:
         options = self.options
@@ -792,6 +808,13 @@ class RobustRegistration:
             costs, starts = np.concatenate([costs, more_costs]), starts + more_starts
             doubtful, confidence, fitness = self._doubt(poses, costs, src_s, tgt_tree, inlier_distance)
         best = int(costs.argmin())
+        selection = "fixed"
+        if rounds > 1 and options.doubtful_select == "polish" and len(nus):
+            ranking = fixed_scale_cost(poses, src_s, tgt_tree, float(nus[-1]))
+            best, selection = int(ranking.argmin()), "polish"
+            doubtful, confidence, fitness = self._doubt(
+                poses, costs, src_s, tgt_tree, inlier_distance, best=best, ranking=ranking
+            )
         chosen = (poses[0][best : best + 1], poses[1][best : best + 1])
         fine_nus = fine_scales(options, spacing)
         fine = fitness >= options.fine_fitness and len(fine_nus) > 0
@@ -806,6 +829,7 @@ class RobustRegistration:
             "rounds": rounds,
             "starts": starts,
             "candidates": len(costs),
+            "selection": selection,
             "fine": fine,
         }
         return MethodResult(transform=transform, info=info)

@@ -18,6 +18,7 @@ from linereg.procrustes import weighted_procrustes as torch_procrustes
 from linereg.registration import METHODS
 from linereg.registration.robust import (
     RobustOptions,
+    RobustRegistration,
     alignment_quality,
     axis_rotations,
     cdw_adam,
@@ -174,6 +175,8 @@ def test_options_are_checked():
         RobustOptions(rounds=4)
     with pytest.raises(ValueError, match="min_fitness must be in"):
         RobustOptions(min_fitness=1.5)
+    with pytest.raises(ValueError, match="doubtful_select must be 'polish' or 'fixed'"):
+        RobustOptions(doubtful_select="line")
     with pytest.raises(ValueError, match="coarse_sides must be"):
         RobustOptions(coarse_sides=("both", "target"))
     assert RobustOptions(coarse_sides=["source"]).coarse_sides == ("source",)
@@ -199,6 +202,7 @@ def test_robust_registration_recovers_a_partial_view_and_reports_its_quality(par
     assert info["fitness"] > 0.95 and 0 < info["inlier_rmse"] < info["fitness_threshold"]
     assert info["converged"] is True and info["confidence"] > 0.2 and info["rounds"] == 1
     assert info["starts"] == 4 * 2 and 1 <= info["candidates"] <= 8 and info["warnings"] == []
+    assert info["selection"] == "fixed"
 
 
 def test_a_doubtful_pose_gets_the_later_rounds(partial_pair):
@@ -206,7 +210,7 @@ def test_a_doubtful_pose_gets_the_later_rounds(partial_pair):
     result = METHODS.build({"name": "robust", "num_points": 512, "options": {"max_cost": 1e-6}})(src, tgt)
     search_keep = RobustOptions().search_keep
     assert result.info["rounds"] == 3 and result.info["starts"] == 2 * (4 + 4) + search_keep
-    assert result.info["converged"] is False
+    assert result.info["converged"] is False and result.info["selection"] == "polish"
     assert error_deg(result.transform, truth) < 1.0
     capped = METHODS.build({"name": "robust", "num_points": 512, "options": {"max_cost": 1e-6, "rounds": 1}})
     assert capped(src, tgt).info["rounds"] == 1
@@ -351,3 +355,38 @@ def test_a_partial_overlap_keeps_the_polish_scale(partial_pair):
     plain = METHODS.build({**one_round, "options": {"rounds": 1, "fine_end": 0.3}})(src, cut)
     assert result.info["fine"] is False and result.info["fitness"] < RobustOptions().fine_fitness
     np.testing.assert_array_equal(result.transform, plain.transform)
+
+
+def test_the_doubt_test_judges_a_given_choice_by_the_selection_cost():
+    """A choice made by another ranking is doubtful when a distinct rival costs less at
+    ``select_nu``; its confidence compares the ranking that made it."""
+    solver = RobustRegistration()
+    rotations = np.stack([np.eye(3), pose([0, 0, 90], [0, 0, 0])[:3, :3], pose([0, 0, 2], [0, 0, 0])[:3, :3]])
+    poses = (rotations, np.zeros((3, 3)))
+    src = surface(200, 3)
+    tree = cKDTree(src)
+    costs, ranking = np.array([0.30, 0.20, 0.31]), np.array([0.5, 0.8, 0.6])
+    doubtful, confidence, fitness = solver._doubt(poses, costs, src, tree, 0.05, best=0, ranking=ranking)
+    assert doubtful is True and confidence == pytest.approx(1.0 - 0.5 / 0.8) and fitness == 1.0
+    cheaper = np.array([0.10, 0.20, 0.31])
+    doubtful, confidence, _ = solver._doubt(poses, cheaper, src, tree, 0.05, best=0, ranking=ranking)
+    assert doubtful is False and confidence == pytest.approx(1.0 - 0.5 / 0.8)
+    _, confidence, _ = solver._doubt(poses, costs, src, tree, 0.05)
+    assert confidence == pytest.approx(1.0 - 0.20 / 0.30)
+
+
+@pytest.mark.slow
+@pytest.mark.shared_data
+def test_doubtful_rounds_choose_the_true_pose_of_a_flipped_airplane_view(shared_data):
+    """Pair 8 of the paper's Airplane protocol (two partly overlapping views, fitness 0.58 at the
+    truth): at ``select_nu`` the view flipped by 180 deg costs 0.10 less than the truth; the
+    polish objective (0.3 point spacings) ranks the truth first."""
+    from linereg.datasets.benchmark_pairs import select_pairs
+
+    pair = select_pairs({"name": "airplane"}, pairs=40, seed=0)[8]
+    truth = pair.gt_transform.astype(np.float64)
+    result = METHODS.build({"name": "robust"})(pair.src_xyz, pair.tgt_xyz)
+    assert result.info["rounds"] == 3 and result.info["selection"] == "polish"
+    assert error_deg(result.transform, truth) < 1.0 and result.info["converged"] is False
+    fixed = METHODS.build({"name": "robust", "options": {"doubtful_select": "fixed"}})(pair.src_xyz, pair.tgt_xyz)
+    assert error_deg(fixed.transform, truth) > 170.0

@@ -35,6 +35,7 @@ from linereg.registration.robust import (
     RobustRegistration,
     apply,
     fixed_scale_cost,
+    pca_normals,
     point_spacing,
     polish_scales,
     rotation_gap_deg,
@@ -50,14 +51,6 @@ def _solver_frame(transform: np.ndarray, src: np.ndarray, tgt: np.ndarray) -> tu
     centred = translation(-c_tgt) @ transform @ translation(c_src)
     centred[:3, 3] /= radius
     return centred, radius
-
-
-def pca_normals(points: np.ndarray, k: int = 10) -> np.ndarray:
-    """Unoriented normals ``(N, 3)`` of ``points (N, 3)``: the least principal axis of ``k`` neighbours."""
-    _, index = cKDTree(points).query(points, k=k, workers=1)
-    neighbours = points[index] - points[index].mean(axis=1, keepdims=True)
-    _, vectors = np.linalg.eigh(neighbours.transpose(0, 2, 1) @ neighbours)
-    return vectors[:, :, 0]
 
 
 def trimmed_cost(distances: np.ndarray, power: float) -> np.ndarray:

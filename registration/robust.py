@@ -22,11 +22,18 @@ distances), so a few dozen steps replace hundreds of gradient steps.
    (:func:`cdw_adam`) from the same starts; still doubtful, round 3 searches every pose of a
    grid (:func:`pose_search`: hundreds of rotations, and for each the best translation of a
    lattice, by a one-sided Welsch cost read from a table) and runs the one-sided IRLS from the
-   best distinct poses. Each round ends with the polish, and the selection runs over every
-   candidate so far.
+   best distinct poses. Each round ends with the polish, and the doubt test runs over every
+   candidate so far. After a doubtful first round the final choice among all candidates is the
+   lowest value of the polish's own objective (Welsch at its last scale, ``polish_end`` point
+   spacings; ``doubtful_select``): every candidate is a local minimum of that objective, while
+   the coarser selection scale rewards a wrong pose that brings more of a partly overlapping
+   view near the target (docs/registration.md).
 5. Fine polish of the chosen pose when the source lies on the target (fitness at least
    ``fine_fitness``): the IRLS goes on to ``fine_end`` times the point spacing
-   (:func:`fine_scales`); partly overlapping scans keep the polish's pose.
+   (:func:`fine_scales`); partly overlapping scans keep the polish's pose. Then, when the two
+   clouds are independent samplings of the surface (almost no source point coincides with a
+   target point), a few point-to-plane steps (:func:`plane_irls`) remove the point-to-point
+   fit's sampling offset.
 """
 
 from __future__ import annotations
@@ -335,6 +342,40 @@ def welsch_irls(
     return rotations, translations
 
 
+def pca_normals(points: np.ndarray, k: int = 10) -> np.ndarray:
+    """Unoriented unit normals ``(N, 3)`` of ``points (N, 3)``: the least principal axis of each
+    point's ``k`` nearest points (itself included). Numpy twin of Open3D's estimate, without orientation."""
+    _, index = cKDTree(points).query(points, k=min(k, len(points)), workers=1)
+    neighbours = points[index] - points[index].mean(axis=1, keepdims=True)
+    _, vectors = np.linalg.eigh(neighbours.transpose(0, 2, 1) @ neighbours)
+    return vectors[:, :, 0]
+
+
+def plane_irls(poses: Poses, src: np.ndarray, tgt_tree: cKDTree, normals: np.ndarray, nu: float, steps: int) -> Poses:
+    """Robust point-to-plane ICP: ``steps`` Gauss-Newton steps on ``sum_i w_i (n_j . (R p_i + t - q_j))^2``
+    for ``K`` poses at once, ``q_j`` the nearest target point of the moved source point ``p_i (N, 3)``,
+    ``n_j`` its normal (``normals (M, 3)``), ``w_i`` Welsch's weight of the point distance at scale ``nu``.
+
+    The model of two independent samplings of one surface: a source point lies on the target's
+    tangent plane, not on a target point, so the residual carries no sampling offset."""
+    tgt = np.concatenate([tgt_tree.data, np.zeros((1, 3))])  # scipy's index of "none in range": weight 0
+    normals = np.concatenate([normals, np.zeros((1, 3))])
+    rotations, translations = (array.copy() for array in poses)
+    for _ in range(steps):
+        moved = apply((rotations, translations), src)
+        distances, idx = tgt_tree.query(moved, distance_upper_bound=_REACH * nu, workers=1)
+        n = normals[idx]
+        residual = ((moved - tgt[idx]) * n).sum(axis=-1)
+        weights = _welsch_weights(distances, nu)
+        jacobian = np.concatenate([np.cross(moved, n), n], axis=-1)
+        hessian = np.einsum("kni,kn,knj->kij", jacobian, weights, jacobian) + 1e-12 * np.eye(6)
+        step = -np.linalg.solve(hessian, np.einsum("kni,kn->ki", jacobian, weights * residual)[..., None])[..., 0]
+        turn = rodrigues(step[:, :3])
+        rotations = turn @ rotations
+        translations = (turn @ translations[:, :, None])[:, :, 0] + step[:, 3:]
+    return rotations, translations
+
+
 def fixed_scale_cost(poses: Poses, src: np.ndarray, tgt_tree: cKDTree, nu: float) -> np.ndarray:
     """Welsch cost of every source point's nearest target distance with a FIXED scale ``nu``.
 
@@ -517,7 +558,17 @@ class RobustOptions:
             ``polish_end`` to this, times the spacing (:func:`fine_scales`). A partial overlap
             (real scans: fitness 0.70-0.73 on 3DMatch) stays at ``polish_end``.
         fine_fitness: that fitness, within ``fitness_spacings`` target point spacings.
+        plane_steps: point-to-plane steps (:func:`plane_irls`) after the fine polish when the
+            clouds are independent samplings of the surface: fewer than ``coincident_share`` of
+            the source points lie within ``coincident_distance`` target point spacings of a target
+            point (clouds cut from one sampling share points; a point-to-point fit is exact there).
+            0: never.
+        plane_nu: Welsch scale of those steps, in target point spacings.
+        coincident_distance, coincident_share: that test.
         select_nu: scale of the selection cost :func:`fixed_scale_cost`.
+        doubtful_select: the final choice after a doubtful first round: ``"polish"``, the
+            lowest polish objective (:func:`fixed_scale_cost` at the polish's last scale,
+            ``polish_end`` target point spacings), or ``"fixed"``, the lowest cost at ``select_nu``.
         doubt_ratio: the pose is doubtful when another candidate more than ``distinct_deg``
             away costs less than this factor times the best cost, or the best cost exceeds
             ``max_cost``, or fewer than ``min_fitness`` of the source points lie within
@@ -552,7 +603,12 @@ class RobustOptions:
     polish_settle: int = 60
     fine_end: float = 0.1
     fine_fitness: float = 0.95
+    plane_steps: int = 10
+    plane_nu: float = 1.0
+    coincident_distance: float = 0.02
+    coincident_share: float = 0.01
     select_nu: float = 0.03
+    doubtful_select: str = "polish"
     doubt_ratio: float = 1.25
     distinct_deg: float = 10.0
     max_cost: float = 0.5
@@ -575,6 +631,8 @@ class RobustOptions:
             "polish_nu",
             "polish_end",
             "fine_end",
+            "plane_nu",
+            "coincident_distance",
             "select_nu",
             "distinct_deg",
             "max_cost",
@@ -590,14 +648,16 @@ class RobustOptions:
         for name in positive:
             if not getattr(self, name) > 0:
                 raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
-        for name in ("coarse_steps", "explore_steps", "polish_steps", "polish_settle", "merge_distance"):
+        for name in ("coarse_steps", "explore_steps", "polish_steps", "polish_settle", "merge_distance", "plane_steps"):
             if getattr(self, name) < 0:
                 raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
-        for name in ("min_fitness", "fine_fitness"):
+        for name in ("min_fitness", "fine_fitness", "coincident_share"):
             if not 0 <= getattr(self, name) <= 1:
                 raise ValueError(f"{name} must be in [0, 1], got {getattr(self, name)}")
         if self.doubt_ratio < 1:
             raise ValueError(f"doubt_ratio must be >= 1, got {self.doubt_ratio}")
+        if self.doubtful_select not in ("polish", "fixed"):
+            raise ValueError(f"doubtful_select must be 'polish' or 'fixed', got {self.doubtful_select!r}")
         if self.rounds not in (1, 2, 3):
             raise ValueError(f"rounds must be 1, 2 or 3, got {self.rounds}")
         sides = tuple(self.coarse_sides)
@@ -650,9 +710,12 @@ class RobustRegistration:
     The result's ``info`` holds ``fitness`` and ``inlier_rmse`` (Open3D's definitions, within
     ``fitness_threshold`` in input units; default 3 times the target's median point spacing),
     ``converged`` (the final choice is not doubtful), ``confidence`` (``1 - best cost / cost of
-    the best distinct basin``; 1 without a rival), ``rounds``, ``starts`` (coarse candidates of
-    all rounds: starts x coarse sides), ``candidates`` (those polished: not merged), the
-    selection ``cost``, ``fine`` (the chosen pose got the fine polish) and ``warnings``
+    the best distinct basin``, by the cost that chose it; 1 without a rival), ``rounds``, ``starts``
+    (coarse candidates of all rounds: starts x coarse sides), ``candidates`` (those polished: not
+    merged), the chosen pose's ``cost`` at ``select_nu``, ``selection`` (``"fixed"``, or
+    ``"polish"`` after a doubtful first round: ``doubtful_select``), ``fine`` (the chosen pose got
+    the fine polish), ``coincident`` (after it: the share of source points on a target point;
+    ``None`` without it), ``plane`` (the point-to-plane steps ran) and ``warnings``
     (collinear clouds).
 
     Args:
@@ -758,19 +821,23 @@ class RobustRegistration:
         best = distinct_best(rotations, costs, options.search_keep, options.distinct_deg)
         return (rotations[best], translations[best]), np.zeros(len(best), dtype=bool)
 
-    def _doubt(self, poses: Poses, costs: np.ndarray, src, tgt_tree, inlier_distance) -> tuple[bool, float, float]:
-        """``(doubtful, confidence, fitness)`` of the lowest-cost candidate (see :class:`RobustOptions`)."""
+    def _doubt(
+        self, poses: Poses, costs: np.ndarray, src, tgt_tree, inlier_distance, best: int | None = None, ranking=None
+    ) -> tuple[bool, float, float]:
+        """``(doubtful, confidence, fitness)`` of candidate ``best`` (default: the lowest cost), judged
+        by the selection ``costs (K,)`` (see :class:`RobustOptions`); ``confidence`` compares the
+        values of ``ranking (K,)``, the cost that chose it (default: ``costs``)."""
         options = self.options
-        best = int(costs.argmin())
+        best = int(costs.argmin()) if best is None else best
+        ranking = costs if ranking is None else ranking
         distances, _ = tgt_tree.query(apply((poses[0][best : best + 1], poses[1][best : best + 1]), src)[0], workers=1)
         fitness = float((distances <= inlier_distance).mean())
         poor = float(costs[best]) > options.max_cost or fitness < options.min_fitness
         rivals = rotation_gap_deg(poses[0], poses[0][best]) > options.distinct_deg
         if not rivals.any():
             return poor, 1.0, fitness
-        rival = float(costs[rivals].min())
-        doubtful = poor or rival < options.doubt_ratio * float(costs[best])
-        return doubtful, 1.0 - float(costs[best]) / max(rival, 1e-12), fitness
+        doubtful = poor or float(costs[rivals].min()) < options.doubt_ratio * float(costs[best])
+        return doubtful, 1.0 - float(ranking[best]) / max(float(ranking[rivals].min()), 1e-12), fitness
 
     def _solve(self, src, tgt, src_normals, tgt_normals) -> MethodResult:
         options = self.options
@@ -792,11 +859,25 @@ class RobustRegistration:
             costs, starts = np.concatenate([costs, more_costs]), starts + more_starts
             doubtful, confidence, fitness = self._doubt(poses, costs, src_s, tgt_tree, inlier_distance)
         best = int(costs.argmin())
+        selection = "fixed"
+        if rounds > 1 and options.doubtful_select == "polish" and len(nus):
+            ranking = fixed_scale_cost(poses, src_s, tgt_tree, float(nus[-1]))
+            best, selection = int(ranking.argmin()), "polish"
+            doubtful, confidence, fitness = self._doubt(
+                poses, costs, src_s, tgt_tree, inlier_distance, best=best, ranking=ranking
+            )
         chosen = (poses[0][best : best + 1], poses[1][best : best + 1])
         fine_nus = fine_scales(options, spacing)
         fine = fitness >= options.fine_fitness and len(fine_nus) > 0
         if fine:
             chosen = welsch_irls(chosen, src_s, tgt_tree, fine_nus, options.polish_settle)
+        coincident = None
+        if fine and options.plane_steps > 0:
+            distances, _ = tgt_tree.query(apply(chosen, src_s)[0], workers=1)
+            coincident = float((distances <= options.coincident_distance * spacing).mean())
+            if coincident < options.coincident_share:
+                normals = pca_normals(tgt_s)
+                chosen = plane_irls(chosen, src_s, tgt_tree, normals, options.plane_nu * spacing, options.plane_steps)
         transform = as_matrices(chosen)[0]
         transform[:3, 3] *= radius
         info = {
@@ -806,7 +887,10 @@ class RobustRegistration:
             "rounds": rounds,
             "starts": starts,
             "candidates": len(costs),
+            "selection": selection,
             "fine": fine,
+            "coincident": coincident,
+            "plane": coincident is not None and coincident < options.coincident_share,
         }
         return MethodResult(transform=transform, info=info)
 

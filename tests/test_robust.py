@@ -18,6 +18,7 @@ from linereg.procrustes import weighted_procrustes as torch_procrustes
 from linereg.registration import METHODS
 from linereg.registration.robust import (
     RobustOptions,
+    RobustRegistration,
     alignment_quality,
     axis_rotations,
     cdw_adam,
@@ -29,6 +30,9 @@ from linereg.registration.robust import (
     distinct_best,
     fine_scales,
     fixed_scale_cost,
+    pca_normals,
+    plane_irls,
+    point_spacing,
     polish_scales,
     pose_search,
     rodrigues,
@@ -174,6 +178,12 @@ def test_options_are_checked():
         RobustOptions(rounds=4)
     with pytest.raises(ValueError, match="min_fitness must be in"):
         RobustOptions(min_fitness=1.5)
+    with pytest.raises(ValueError, match="plane_steps must be >= 0"):
+        RobustOptions(plane_steps=-1)
+    with pytest.raises(ValueError, match="coincident_share must be in"):
+        RobustOptions(coincident_share=2.0)
+    with pytest.raises(ValueError, match="doubtful_select must be 'polish' or 'fixed'"):
+        RobustOptions(doubtful_select="line")
     with pytest.raises(ValueError, match="coarse_sides must be"):
         RobustOptions(coarse_sides=("both", "target"))
     assert RobustOptions(coarse_sides=["source"]).coarse_sides == ("source",)
@@ -199,6 +209,7 @@ def test_robust_registration_recovers_a_partial_view_and_reports_its_quality(par
     assert info["fitness"] > 0.95 and 0 < info["inlier_rmse"] < info["fitness_threshold"]
     assert info["converged"] is True and info["confidence"] > 0.2 and info["rounds"] == 1
     assert info["starts"] == 4 * 2 and 1 <= info["candidates"] <= 8 and info["warnings"] == []
+    assert info["selection"] == "fixed"
 
 
 def test_a_doubtful_pose_gets_the_later_rounds(partial_pair):
@@ -206,7 +217,7 @@ def test_a_doubtful_pose_gets_the_later_rounds(partial_pair):
     result = METHODS.build({"name": "robust", "num_points": 512, "options": {"max_cost": 1e-6}})(src, tgt)
     search_keep = RobustOptions().search_keep
     assert result.info["rounds"] == 3 and result.info["starts"] == 2 * (4 + 4) + search_keep
-    assert result.info["converged"] is False
+    assert result.info["converged"] is False and result.info["selection"] == "polish"
     assert error_deg(result.transform, truth) < 1.0
     capped = METHODS.build({"name": "robust", "num_points": 512, "options": {"max_cost": 1e-6, "rounds": 1}})
     assert capped(src, tgt).info["rounds"] == 1
@@ -351,3 +362,78 @@ def test_a_partial_overlap_keeps_the_polish_scale(partial_pair):
     plain = METHODS.build({**one_round, "options": {"rounds": 1, "fine_end": 0.3}})(src, cut)
     assert result.info["fine"] is False and result.info["fitness"] < RobustOptions().fine_fitness
     np.testing.assert_array_equal(result.transform, plain.transform)
+
+
+def test_the_doubt_test_judges_a_given_choice_by_the_selection_cost():
+    """A choice made by another ranking is doubtful when a distinct rival costs less at
+    ``select_nu``; its confidence compares the ranking that made it."""
+    solver = RobustRegistration()
+    rotations = np.stack([np.eye(3), pose([0, 0, 90], [0, 0, 0])[:3, :3], pose([0, 0, 2], [0, 0, 0])[:3, :3]])
+    poses = (rotations, np.zeros((3, 3)))
+    src = surface(200, 3)
+    tree = cKDTree(src)
+    costs, ranking = np.array([0.30, 0.20, 0.31]), np.array([0.5, 0.8, 0.6])
+    doubtful, confidence, fitness = solver._doubt(poses, costs, src, tree, 0.05, best=0, ranking=ranking)
+    assert doubtful is True and confidence == pytest.approx(1.0 - 0.5 / 0.8) and fitness == 1.0
+    cheaper = np.array([0.10, 0.20, 0.31])
+    doubtful, confidence, _ = solver._doubt(poses, cheaper, src, tree, 0.05, best=0, ranking=ranking)
+    assert doubtful is False and confidence == pytest.approx(1.0 - 0.5 / 0.8)
+    _, confidence, _ = solver._doubt(poses, costs, src, tree, 0.05)
+    assert confidence == pytest.approx(1.0 - 0.20 / 0.30)
+
+
+@pytest.mark.slow
+@pytest.mark.shared_data
+def test_doubtful_rounds_choose_the_true_pose_of_a_flipped_airplane_view(shared_data):
+    """Pair 8 of the paper's Airplane protocol (two partly overlapping views, fitness 0.58 at the
+    truth): at ``select_nu`` the view flipped by 180 deg costs 0.10 less than the truth; the
+    polish objective (0.3 point spacings) ranks the truth first."""
+    from linereg.datasets.benchmark_pairs import select_pairs
+
+    pair = select_pairs({"name": "airplane"}, pairs=40, seed=0)[8]
+    truth = pair.gt_transform.astype(np.float64)
+    result = METHODS.build({"name": "robust"})(pair.src_xyz, pair.tgt_xyz)
+    assert result.info["rounds"] == 3 and result.info["selection"] == "polish"
+    assert error_deg(result.transform, truth) < 1.0 and result.info["converged"] is False
+    fixed = METHODS.build({"name": "robust", "options": {"doubtful_select": "fixed"}})(pair.src_xyz, pair.tgt_xyz)
+    assert error_deg(fixed.transform, truth) > 170.0
+
+
+def test_pca_normals_are_the_surface_normals():
+    rng = np.random.default_rng(0)
+    plane = np.column_stack([rng.uniform(-1, 1, (300, 2)), np.zeros(300)])
+    np.testing.assert_allclose(np.abs(pca_normals(plane)[:, 2]), 1.0, atol=1e-9)
+    sphere = rng.normal(size=(2000, 3))
+    sphere /= np.linalg.norm(sphere, axis=1, keepdims=True)
+    assert np.median(np.abs((pca_normals(sphere) * sphere).sum(axis=1))) > 0.99
+
+
+def test_point_to_plane_steps_remove_the_sampling_offset_of_independent_samplings():
+    """Two independent samplings of one surface: point-to-point Welsch IRLS stalls about 0.6 deg
+    off (each source point is pulled to a target sample, not to the surface); the point-to-plane
+    steps from there land within 0.05 deg."""
+    truth = pose([20, -10, 5], [0.1, 0.0, 0.05])
+    src, tgt = surface(600, 1), apply(truth, surface(3000, 2))
+    tree = cKDTree(tgt)
+    spacing = point_spacing(tgt, tree)
+    start = pose([20.8, -10.5, 5.3], [0.11, 0.01, 0.05])
+    points = welsch_irls(as_poses(start[None]), src, tree, np.full(20, 0.3 * spacing), 60)
+    plane = plane_irls(points, src, tree, pca_normals(tgt), spacing, 10)
+    point_error = float(rotation_gap_deg(points[0], truth[:3, :3])[0])
+    plane_error = float(rotation_gap_deg(plane[0], truth[:3, :3])[0])
+    assert plane_error < 0.05 and plane_error < 0.1 * point_error
+
+
+def test_the_plane_steps_run_on_independent_samplings_only(partial_pair):
+    """The fixture's view is cut from the target's own samples (a third of its points coincide with
+    one of the target's 1024 FPS points): no plane steps. A view sampled apart from the target gets them."""
+    src, tgt, truth = partial_pair
+    method = METHODS.build({"name": "robust", "num_points": 1024, "options": {"rounds": 1}})
+    shared = method(src, tgt)
+    assert shared.info["fine"] is True and shared.info["coincident"] > 0.2 and shared.info["plane"] is False
+    view = surface(3000, 8)
+    independent = method(view[view[:, 0] > -0.3][:700], tgt)
+    assert independent.info["coincident"] < 0.01 and independent.info["plane"] is True
+    assert error_deg(independent.transform, truth) < 0.1
+    off = {"name": "robust", "num_points": 1024, "options": {"rounds": 1, "plane_steps": 0}}
+    assert METHODS.build(off)(view[view[:, 0] > -0.3][:700], tgt).info["plane"] is False

@@ -5,8 +5,10 @@
 
 For the pairs of the first run's split (the runs must share it) it prints:
 
-1. **Overlap**: the share of source points within ``--radius`` of a target point at the
-   ground-truth pose, and each run's mean / median Err_R over the pairs binned by it.
+0. **Overlap of the first run's data**: the share of source points within ``--radius`` of a
+   target point at the ground-truth pose, summarised over its training pairs (each variant its
+   curriculum trains on), validation and test pairs.
+1. **Err_R by overlap**: each run's mean / median Err_R over the pairs binned by their overlap.
 2. **Iterations**: each run's mean Err_R after every RPM-Net iteration up to ``--iterations``
    (its own ``test_iters`` is the evaluated answer).
 3. **The worst pairs** of the first run: ground-truth rotation angle, overlap, each run's Err_R
@@ -35,7 +37,7 @@ from linereg.checkpoint import find_checkpoint, load_checkpoint
 from linereg.datasets import collate_pairs
 from linereg.datasets.benchmark_pairs import run_pairs
 from linereg.datasets.shape_pairs import ShapePairDataset
-from linereg.datasets.splits import build_dataset, dataset_config
+from linereg.datasets.splits import build_dataset, build_split, dataset_config
 from linereg.metrics import rotation_error_deg
 from linereg.models import MODELS
 from linereg.structures import PairSample
@@ -86,6 +88,25 @@ def errors_by_iteration(run: str, pairs: list[PairSample], iterations: int) -> t
     return errors.numpy(), config["test_iters"], final
 
 
+def overlap_summary(run: str, radius: float) -> list[str]:
+    """One line per split (and training variant) of a run's data: mean overlap, share below 0.5, quartiles."""
+    config = load_checkpoint(find_checkpoint(run))["config"]
+    stages = config.get("curriculum", {}).get("stages", {}).values()
+    variants = sorted({stage["variant"] for stage in stages if stage["epochs"] > 0}, key=str)
+    lines = []
+    for split, variant in [*(("train", v) for v in variants), ("val", None), ("test", None)]:
+        dataset = build_split(config["dataset"], split, variant=variant, progress=False)
+        if dataset is None:
+            continue
+        values = np.array([overlap(dataset[i], radius) for i in range(len(dataset))])
+        quartiles = ", ".join(f"{q:.2f}" for q in np.percentile(values, [25, 50, 75]))
+        lines.append(
+            f"- {split} (variant {variant}): {len(values)} pairs, mean {values.mean():.2f}, "
+            f"{(values < 0.5).mean():.0%} below 0.5, quartiles {quartiles}"
+        )
+    return lines
+
+
 def whole_shape(run: str, pair: PairSample) -> np.ndarray | None:
     """The pair's whole shape surface in the pair's frame (before the target's transform), or None."""
     config = load_checkpoint(find_checkpoint(run))["config"]["dataset"]
@@ -114,7 +135,9 @@ def main(argv: list[str] | None = None) -> int:
     names = [f"{p.meta['shape']}_{p.meta['view']}" for p in pairs]
     overlaps = np.array([overlap(p, args.radius) for p in pairs])
     results = {run: errors_by_iteration(run, pairs, args.iterations) for run in args.runs}
-    print(f"{len(pairs)} {args.split} pairs of {args.runs[0]}\n\n**1. Err_R by overlap** (radius {args.radius:g})\n")
+    print(f"**0. Overlap of the data of {args.runs[0]}** (radius {args.radius:g})\n")
+    print("\n".join(overlap_summary(args.runs[0], args.radius)))
+    print(f"\n**1. Err_R by overlap** ({len(pairs)} {args.split} pairs)\n")
     print("| overlap | pairs | " + " | ".join(f"{run} mean / median" for run in args.runs) + " |")
     print("|---|---:|" + "---:|" * len(args.runs))
     for low, high in itertools.pairwise(OVERLAP_BINS):

@@ -67,7 +67,7 @@ def angle_deg(transform: np.ndarray) -> float:
 
 
 def errors_by_iteration(run: str, pairs: list[PairSample], iterations: int) -> tuple[np.ndarray, int, np.ndarray]:
-    """Err_R ``(P, iterations)`` of a run's last checkpoint after every iteration.
+    """Err_R ``(P, iterations)`` of a run's evaluated checkpoint after every iteration.
 
     Returns:
         The errors, the run's ``test_iters`` and its ``(P, 4, 4)`` evaluated poses.

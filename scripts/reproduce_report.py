@@ -1,6 +1,7 @@
 """Tables and figures of docs/results.md from the runs of scripts/reproduce.sh.
 
     python scripts/reproduce_report.py [outputs/reproduce] [--docs docs/results]
+    python scripts/reproduce_report.py outputs/schedule --schedule procedural
 
 Reads every ``<protocol>/<cell>_s<seed>/metrics.json`` (training runs), ``<protocol>/baselines/
 results.json`` (classical methods on the same test pairs) and ``real/rpm_gt_procedural_s*/
@@ -14,7 +15,9 @@ metrics.json`` (a model evaluated without fine-tuning), and writes into ``--docs
 * ``figure_<protocol>_<cell>.png``: before/after views of the first test pair of a few runs;
 
 and replaces the text between ``<!-- tables:begin -->`` and ``<!-- tables:end -->`` in
-``--page`` (default ``docs/results.md``) with the tables.
+``--page`` (default ``docs/results.md``) with the tables. ``--schedule <protocol>`` instead prints
+the table of scripts/reproduce_schedule.sh (every seed's Err_R, the CPU seconds of each cell) and
+writes nothing.
 """
 
 from __future__ import annotations
@@ -75,7 +78,7 @@ CONTROLS = ("untrained", "reg")
 ROW_ORDER = (
     [IDENTITY, "icp_point", "icp_plane", "fricp", "fgr"]
     + [f"{b}_{loss}" for b in ("dcp", "fmr", "rpm") for loss in (*CONTROLS, "gt", "cd", "ours")]
-    + ["rpm_ours_fixed_nu", "rpm_gt_procedural", "rpm_gt_finetuned"]
+    + ["rpm_ours_quick", "rpm_ours_fixed_nu", "rpm_gt_procedural", "rpm_gt_finetuned"]
 )
 CELL = re.compile(r"(?P<cell>.+)_s(?P<seed>\d+)$")
 
@@ -112,6 +115,16 @@ def _seconds(run: Path) -> float | None:
     if not file.is_file():
         return None
     return sum(float(line) for line in file.read_text().split())
+
+
+def _cpu_seconds(run: Path) -> float | None:
+    """User + system CPU seconds of a run, summed over its attempts (``<run>.cpu``, ``time -f "%U %S"``)."""
+    file = run.parent / f"{run.name}.cpu"
+    if not file.is_file():
+        return None
+    attempts = [line.split() for line in file.read_text().splitlines()]
+    # A failed attempt adds a "Command exited with non-zero status" line before its times.
+    return sum(float(user) + float(system) for user, system in (a for a in attempts if len(a) == 2))
 
 
 def _fmt(values: list[float], scale: float) -> str:
@@ -157,7 +170,7 @@ def protocol_rows(out: Path, protocol: str) -> list[dict[str, str]]:
             time = f"{summary['seconds_mean'] * 1000:.0f} ms/pair"
             rows[method] = _row(cols, summary["err_r_deg_median"], "-", time)
     paper = PAPER.get(protocol, {})
-    ordered = sorted(rows, key=lambda name: ROW_ORDER.index(name) if name in ROW_ORDER else len(ROW_ORDER))
+    ordered = _ordered(rows)
     for name in ordered:
         numbers = paper.get(name)
         rows[name]["name"] = name
@@ -177,6 +190,40 @@ def markdown(rows: list[dict[str, str]]) -> str:
         for r in rows
     )
     return header + body
+
+
+def _ordered(names) -> list[str]:
+    return sorted(names, key=lambda name: ROW_ORDER.index(name) if name in ROW_ORDER else len(ROW_ORDER))
+
+
+def schedule_markdown(out: Path, protocol: str) -> str:
+    """The table of scripts/reproduce_schedule.sh: per cell, the test Err_R mean (± the sample
+    standard deviation over seeds) with each seed's value, the median Err_R and Err_t l1 (means
+    over seeds), the seeds and the mean CPU seconds of a run; the identity on the same test pairs first."""
+    runs = _runs(out / protocol)
+    lines = [
+        "| cell | test Err_R mean (deg) | per seed | median Err_R | Err_t l1 (x10^-1) | seeds | CPU s |",
+        "|---|---:|---|---:|---:|---|---:|",
+    ]
+    identity = next((m for cell_runs in runs.values() for m in [_identity_metrics(cell_runs[0])] if m), None)
+    if identity is not None:
+        lines.append(
+            f"| {IDENTITY} | {identity['err_r_deg_mean']:.2f} | | {identity['err_r_deg_median']:.2f} | "
+            f"{identity['err_t_l1_mean'] * 10:.2f} | - | |"
+        )
+    for cell in _ordered(runs):
+        metrics = [_test_metrics(run) for run in runs[cell]]
+        err_r = [m["err_r_deg_mean"] for m in metrics]
+        mean = f"{statistics.fmean(err_r):.2f}" + (f" ± {statistics.stdev(err_r):.2f}" if len(err_r) > 1 else "")
+        per_seed = ", ".join(f"{value:.2f}" for value in err_r) if len(err_r) > 1 else ""
+        seeds = " ".join(CELL.match(run.name)["seed"] for run in runs[cell])
+        cpu = [t for t in (_cpu_seconds(run) for run in runs[cell]) if t is not None]
+        lines.append(
+            f"| {cell} | {mean} | {per_seed} | {statistics.fmean(m['err_r_deg_median'] for m in metrics):.2f} | "
+            f"{statistics.fmean(m['err_t_l1_mean'] for m in metrics) * 10:.2f} | {seeds} | "
+            f"{f'{statistics.fmean(cpu):.0f}' if cpu else ''} |"
+        )
+    return "\n".join(lines) + "\n"
 
 
 def plot_curves(out: Path, protocol: str, path: Path) -> bool:
@@ -212,9 +259,15 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--docs", default="docs/results", type=Path)
     parser.add_argument("--figures", nargs="*", default=["rpm_ours", "rpm_cd", "rpm_gt"])
     parser.add_argument("--page", default="docs/results.md", type=Path)
+    parser.add_argument("--schedule", metavar="PROTOCOL", help="print the table of scripts/reproduce_schedule.sh")
     args = parser.parse_args(argv)
     if not args.out.is_dir():
         parser.error(f"{args.out} is not a folder (run scripts/reproduce.sh first)")
+    if args.schedule is not None:
+        if not (args.out / args.schedule).is_dir():
+            parser.error(f"{args.out / args.schedule} is not a folder (run scripts/reproduce_schedule.sh first)")
+        print(schedule_markdown(args.out, args.schedule), end="")
+        return 0
     args.docs.mkdir(parents=True, exist_ok=True)
     sections = []
     for protocol in ("airplane", "human", "real"):

@@ -1,67 +1,97 @@
 #!/usr/bin/env bash
-# The `make train` schedule study of docs/results.md (issue #13): RPM-Net on the embedded
-# procedural pairs at 256 points, every loss with the same schedule (lr 1e-3 with a cosine decay,
-# outlier weight 1 for the unsupervised cells, the last checkpoint evaluated: no label chooses
-# it), plus the untrained network and the regulariser alone; then the table of test errors.
+# The one-schedule protocol of docs/results.md (issue #13): every loss of a backbone trained with
+# the same schedule (Adam at 1e-3 with a cosine decay, one stage of easy poses for 4 epochs,
+# 256 points, the last checkpoint evaluated: no label chooses it), beside two controls, the
+# untrained network and the unsupervised regulariser alone; then the table of test errors.
 #
-#   scripts/reproduce_schedule.sh                      # seed 0, every cell (about 40 min of CPU, one core)
+#   scripts/reproduce_schedule.sh                      # seed 0, every RPM-Net cell on procedural pairs
 #   SEEDS="0 1 2" CELLS="rpm_ours rpm_cd" scripts/reproduce_schedule.sh
+#   CELLS="dcp_untrained dcp_reg dcp_gt dcp_cd dcp_ours" scripts/reproduce_schedule.sh
+#   PROTOCOL=airplane CELLS="rpm_gt rpm_cd rpm_ours rpm_untrained" scripts/reproduce_schedule.sh
+#   DRY=1 CELLS=... scripts/reproduce_schedule.sh      # print each run's overrides, run nothing
 #
-# Finished cells (metrics.json present) are skipped. Runs land in $OUT/procedural (default
-# outputs/schedule); each run uses one thread, so two can share a 2-core machine.
+# PROTOCOL: procedural (the embedded pairs, no download), airplane or human (configs/reproduce/,
+# the shared data). Cells are <backbone>_<loss> for rpm, dcp and fmr: untrained, reg, gt, cd,
+# ours (and rpm_ours_quick). FMR-CD is FMR's reconstruction term alone (its own unsupervised
+# loss), so fmr_reg only differs from it by the term's weight (0.001, as in FMR-Ours).
+# Finished cells (metrics.json present) are skipped; an interrupted one resumes from its last
+# checkpoint. Runs land in $OUT/$PROTOCOL (default outputs/schedule); each run uses one thread,
+# so two can share a 2-core machine; $dir.cpu records each attempt's user and system CPU seconds.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 PY=${PYTHON:-.venv/bin/python}
 OUT=${OUT:-outputs/schedule}
 SEEDS=${SEEDS:-0}
+PROTOCOL=${PROTOCOL:-procedural}
 CELLS=${CELLS:-rpm_untrained rpm_reg rpm_gt rpm_cd rpm_ours rpm_ours_quick}
+DRY=${DRY:-0}
 export OMP_NUM_THREADS=${OMP_NUM_THREADS:-1}
 
 # Everything the cells rely on is pinned here, so that changes of the embedded default
 # (configs/train.yaml) leave this study as it was run.
 COMMON=(trainer.num_points=256 trainer.threads=1 trainer.progress=false trainer.log_term_grad_norms=false
-  trainer.evaluate_checkpoint=last optimizer.lr=1e-3 scheduler=cosine curriculum=quick)
-# One stage: the easy variant (poses <= 15 deg, more overlap) of all 384 training pairs, 4 epochs.
-EASY_ALL=(curriculum.stages.easy.subset=null curriculum.stages.subset.epochs=0 curriculum.stages.full.epochs=0)
-UNSUPERVISED=(loss.terms.outlier.weight=1)
+  trainer.evaluate_checkpoint=last optimizer=adam optimizer.lr=1e-3 scheduler=cosine curriculum=quick)
+case $PROTOCOL in
+  procedural) COMMON+=(dataset=procedural) ;;
+  airplane | human) COMMON+=("reproduce=$PROTOCOL") ;;
+  *) echo "unknown PROTOCOL $PROTOCOL (procedural, airplane, human)" >&2; exit 2 ;;
+esac
+# One stage: the easy variant (poses <= 15 deg, more overlap) of all training pairs, 4 epochs.
+EASY_ALL=(curriculum.stages.easy.subset=null curriculum.stages.easy.epochs=4 curriculum.stages.subset.epochs=0
+  curriculum.stages.full.epochs=0)
+# The backbones at the sizes of scripts/reproduce.sh's grid.
+RPM=(model=rpmnet_cpu)
+DCP=(model=dcp_v2 model.emb_dims=256 model.ff_dims=512)
+FMR=(model=fmr)
+UNSUPERVISED_RPM=(loss.terms.outlier.weight=1)
 # The paper's line loss with 5000 lines (the embedded default's loss when this study was run).
-OURS=(loss=rpm_ours loss.num_lines=5000)
+LINES=(loss.num_lines=5000)
 
 overrides() {
   case $1 in
-    rpm_untrained) echo "${OURS[*]} trainer.untrained=true" ;;
-    rpm_reg) echo "${OURS[*]} ${UNSUPERVISED[*]} ${EASY_ALL[*]} loss.terms.alignment.weight=0" ;;
-    rpm_gt) echo "loss=rpm_gt ${EASY_ALL[*]}" ;;
-    rpm_cd) echo "loss=rpm_cd ${UNSUPERVISED[*]} ${EASY_ALL[*]}" ;;
-    rpm_ours) echo "${OURS[*]} ${UNSUPERVISED[*]} ${EASY_ALL[*]}" ;;
-    rpm_ours_quick) echo "${OURS[*]} ${UNSUPERVISED[*]}" ;;  # the quick 3-stage curriculum (the embedded default until issue #13)
-    *) echo "unknown cell $1 (rpm_untrained rpm_reg rpm_gt rpm_cd rpm_ours rpm_ours_quick)" >&2; return 2 ;;
+    rpm_untrained) echo "${RPM[*]} loss=rpm_ours ${LINES[*]} trainer.untrained=true" ;;
+    rpm_reg) echo "${RPM[*]} loss=rpm_ours ${LINES[*]} ${UNSUPERVISED_RPM[*]} ${EASY_ALL[*]} loss.terms.alignment.weight=0" ;;
+    rpm_gt) echo "${RPM[*]} loss=rpm_gt ${EASY_ALL[*]}" ;;
+    rpm_cd) echo "${RPM[*]} loss=rpm_cd ${UNSUPERVISED_RPM[*]} ${EASY_ALL[*]}" ;;
+    rpm_ours) echo "${RPM[*]} loss=rpm_ours ${LINES[*]} ${UNSUPERVISED_RPM[*]} ${EASY_ALL[*]}" ;;
+    rpm_ours_quick) echo "${RPM[*]} loss=rpm_ours ${LINES[*]} ${UNSUPERVISED_RPM[*]}" ;;  # the quick 3-stage curriculum
+    dcp_untrained) echo "${DCP[*]} loss=dcp_ours ${LINES[*]} trainer.untrained=true" ;;
+    dcp_reg) echo "${DCP[*]} loss=dcp_ours ${LINES[*]} ${EASY_ALL[*]} loss.terms.alignment.weight=0" ;;
+    dcp_gt) echo "${DCP[*]} loss=dcp_gt ${EASY_ALL[*]}" ;;
+    dcp_cd) echo "${DCP[*]} loss=dcp_cd ${EASY_ALL[*]}" ;;
+    dcp_ours) echo "${DCP[*]} loss=dcp_ours ${LINES[*]} ${EASY_ALL[*]}" ;;
+    fmr_untrained) echo "${FMR[*]} loss=fmr_ours ${LINES[*]} trainer.untrained=true" ;;
+    fmr_reg) echo "${FMR[*]} loss=fmr_ours ${LINES[*]} ${EASY_ALL[*]} loss.terms.alignment.weight=0" ;;
+    fmr_gt) echo "${FMR[*]} loss=fmr_gt ${EASY_ALL[*]}" ;;
+    fmr_cd) echo "${FMR[*]} loss=fmr_cd ${EASY_ALL[*]}" ;;
+    fmr_ours) echo "${FMR[*]} loss=fmr_ours ${LINES[*]} ${EASY_ALL[*]}" ;;
+    *) echo "unknown cell $1 (<rpm|dcp|fmr>_<untrained|reg|gt|cd|ours>, rpm_ours_quick)" >&2; return 2 ;;
   esac
 }
 
-mkdir -p "$OUT/procedural"
+for name in $CELLS; do overrides "$name" > /dev/null; done  # unknown cells fail before any run
+[[ $DRY == 0 ]] && mkdir -p "$OUT/$PROTOCOL"
 for seed in $SEEDS; do
   for name in $CELLS; do
-    dir=$OUT/procedural/${name}_s$seed
+    dir=$OUT/$PROTOCOL/${name}_s$seed
+    args=$(overrides "$name")
+    read -r -a extra <<< "$args"
+    if [[ $DRY != 0 ]]; then
+      echo "$name seed=$seed ${COMMON[*]} ${extra[*]}"
+      continue
+    fi
     if [[ -f $dir/metrics.json ]]; then
       echo "done: $dir"
       continue
     fi
-    args=$(overrides "$name")
-    read -r -a extra <<< "$args"
+    [[ -d $dir/checkpoints ]] && extra+=(resume=true)
     echo "run: $dir"
     start=$SECONDS
-    "$PY" -m train "seed=$seed" "${COMMON[@]}" "${extra[@]}" "hydra.run.dir=$dir" > "$dir.log" 2>&1 \
+    /usr/bin/time -a -o "$dir.cpu" -f "%U %S" \
+      "$PY" -m train "seed=$seed" "${COMMON[@]}" "${extra[@]}" "hydra.run.dir=$dir" >> "$dir.log" 2>&1 \
       || { tail -20 "$dir.log"; exit 1; }
     echo $((SECONDS - start)) >> "$dir.seconds"
   done
 done
-"$PY" - "$OUT" <<'EOF'
-import sys
-from pathlib import Path
-
-sys.path.insert(0, "scripts")
-from reproduce_report import markdown, protocol_rows
-
-print(markdown(protocol_rows(Path(sys.argv[1]), "procedural")))
-EOF
+[[ $DRY != 0 ]] && exit 0
+"$PY" scripts/reproduce_report.py "$OUT" --schedule "$PROTOCOL"

@@ -32,8 +32,8 @@ distances), so a few dozen steps replace hundreds of gradient steps.
    ``fine_fitness``): the IRLS goes on to ``fine_end`` times the point spacing
    (:func:`fine_scales`); partly overlapping scans keep the polish's pose. Then, when the two
    clouds are independent samplings of the surface (almost no source point coincides with a
-   target point), a few point-to-plane steps (:func:`plane_irls`) remove the point-to-point
-   fit's sampling offset.
+   target point), a few plane-to-plane steps (:func:`plane_to_plane_irls`, Generalized-ICP)
+   remove the point-to-point fit's sampling offset.
 """
 
 from __future__ import annotations
@@ -232,12 +232,17 @@ def cdw_irls(
     return (rotations, translations), merged
 
 
+def cross_matrices(vectors: np.ndarray) -> np.ndarray:
+    """``(..., 3, 3)`` matrices ``[v]_x`` of vectors ``(..., 3)``: ``[v]_x u = v x u``."""
+    matrices = np.zeros((*vectors.shape, 3))
+    matrices[..., 0, 1], matrices[..., 0, 2], matrices[..., 1, 2] = -vectors[..., 2], vectors[..., 1], -vectors[..., 0]
+    return matrices - np.swapaxes(matrices, -1, -2)
+
+
 def rodrigues(rotvecs: np.ndarray) -> np.ndarray:
     """``(K, 3, 3)`` rotation matrices of rotation vectors ``(K, 3)`` (axis times angle)."""
     angle = np.linalg.norm(rotvecs, axis=1)[:, None, None]
-    k = np.zeros((len(rotvecs), 3, 3))
-    k[:, 0, 1], k[:, 0, 2], k[:, 1, 2] = -rotvecs[:, 2], rotvecs[:, 1], -rotvecs[:, 0]
-    k -= k.transpose(0, 2, 1)
+    k = cross_matrices(rotvecs)
     small = angle < 1e-8
     sin = np.where(small, 1.0, np.sin(angle) / np.where(small, 1.0, angle))
     cos = np.where(small, 0.5, (1.0 - np.cos(angle)) / np.where(small, 1.0, angle) ** 2)
@@ -342,34 +347,60 @@ def welsch_irls(
     return rotations, translations
 
 
+def pca_frames(points: np.ndarray, k: int = 10) -> np.ndarray:
+    """Local principal axes ``(N, 3, 3)`` of ``points (N, 3)``: column ``a`` of entry ``i`` is the
+    axis of the ``a``-th smallest variance of point ``i``'s ``k`` nearest points (itself included)."""
+    _, index = cKDTree(points).query(points, k=min(k, len(points)), workers=1)
+    neighbours = points[index] - points[index].mean(axis=1, keepdims=True)
+    return np.linalg.eigh(neighbours.transpose(0, 2, 1) @ neighbours)[1]
+
+
 def pca_normals(points: np.ndarray, k: int = 10) -> np.ndarray:
     """Unoriented unit normals ``(N, 3)`` of ``points (N, 3)``: the least principal axis of each
     point's ``k`` nearest points (itself included). Numpy twin of Open3D's estimate, without orientation."""
-    _, index = cKDTree(points).query(points, k=min(k, len(points)), workers=1)
-    neighbours = points[index] - points[index].mean(axis=1, keepdims=True)
-    _, vectors = np.linalg.eigh(neighbours.transpose(0, 2, 1) @ neighbours)
-    return vectors[:, :, 0]
+    return pca_frames(points, k)[:, :, 0]
 
 
-def plane_irls(poses: Poses, src: np.ndarray, tgt_tree: cKDTree, normals: np.ndarray, nu: float, steps: int) -> Poses:
-    """Robust point-to-plane ICP: ``steps`` Gauss-Newton steps on ``sum_i w_i (n_j . (R p_i + t - q_j))^2``
-    for ``K`` poses at once, ``q_j`` the nearest target point of the moved source point ``p_i (N, 3)``,
-    ``n_j`` its normal (``normals (M, 3)``), ``w_i`` Welsch's weight of the point distance at scale ``nu``.
+def surface_covariances(points: np.ndarray, k: int = 10, epsilon: float = 1e-2) -> np.ndarray:
+    """Plane covariances ``(N, 3, 3)`` of ``points (N, 3)`` for :func:`plane_to_plane_irls`: each
+    point's local frame (:func:`pca_frames`) with variances ``(epsilon, 1, 1)``, a disc of unit
+    spread along the surface and ``epsilon`` across it (Segal et al., Generalized-ICP, 2009)."""
+    frames = pca_frames(points, k)
+    return np.einsum("nij,j,nkj->nik", frames, np.array([epsilon, 1.0, 1.0]), frames)
 
-    The model of two independent samplings of one surface: a source point lies on the target's
-    tangent plane, not on a target point, so the residual carries no sampling offset."""
+
+def plane_to_plane_irls(
+    poses: Poses,
+    src: np.ndarray,
+    src_covariances: np.ndarray,
+    tgt_tree: cKDTree,
+    tgt_covariances: np.ndarray,
+    nu: float,
+    steps: int,
+) -> Poses:
+    """Robust plane-to-plane ICP (Generalized-ICP): ``steps`` Gauss-Newton steps on
+    ``sum_i w_i r_i^T (C_j + R C_i R^T)^-1 r_i``, ``r_i = R p_i + t - q_j``, for ``K`` poses at once.
+
+    ``q_j`` is the nearest target point of the moved source point ``p_i`` (``src (N, 3)``),
+    ``C_i``/``C_j`` their :func:`surface_covariances` (``(N, 3, 3)``, ``(M, 3, 3)``), ``w_i``
+    Welsch's weight of the point distance at scale ``nu``. The model of two independent samplings
+    of one surface: each point lies somewhere on its local plane, on both sides, so the residual
+    carries neither the point-to-point fit's sampling offset nor point-to-plane's one-sided bias.
+    """
     tgt = np.concatenate([tgt_tree.data, np.zeros((1, 3))])  # scipy's index of "none in range": weight 0
-    normals = np.concatenate([normals, np.zeros((1, 3))])
+    tgt_covariances = np.concatenate([tgt_covariances, np.eye(3)[None]])
     rotations, translations = (array.copy() for array in poses)
     for _ in range(steps):
         moved = apply((rotations, translations), src)
         distances, idx = tgt_tree.query(moved, distance_upper_bound=_REACH * nu, workers=1)
-        n = normals[idx]
-        residual = ((moved - tgt[idx]) * n).sum(axis=-1)
+        rotated = np.einsum("kab,nbc,kdc->knad", rotations, src_covariances, rotations)
+        information = np.linalg.inv(tgt_covariances[idx] + rotated)
+        residual = moved - tgt[idx]
         weights = _welsch_weights(distances, nu)
-        jacobian = np.concatenate([np.cross(moved, n), n], axis=-1)
-        hessian = np.einsum("kni,kn,knj->kij", jacobian, weights, jacobian) + 1e-12 * np.eye(6)
-        step = -np.linalg.solve(hessian, np.einsum("kni,kn->ki", jacobian, weights * residual)[..., None])[..., 0]
+        jacobian = np.concatenate([-cross_matrices(moved), np.broadcast_to(np.eye(3), (*moved.shape, 3))], axis=-1)
+        weighted = np.einsum("kn,knab,knbj->knaj", weights, information, jacobian)
+        hessian = np.einsum("knai,knaj->kij", jacobian, weighted) + 1e-12 * np.eye(6)
+        step = -np.linalg.solve(hessian, np.einsum("knaj,kna->kj", weighted, residual)[..., None])[..., 0]
         turn = rodrigues(step[:, :3])
         rotations = turn @ rotations
         translations = (turn @ translations[:, :, None])[:, :, 0] + step[:, 3:]
@@ -558,12 +589,14 @@ class RobustOptions:
             ``polish_end`` to this, times the spacing (:func:`fine_scales`). A partial overlap
             (real scans: fitness 0.70-0.73 on 3DMatch) stays at ``polish_end``.
         fine_fitness: that fitness, within ``fitness_spacings`` target point spacings.
-        plane_steps: point-to-plane steps (:func:`plane_irls`) after the fine polish when the
+        plane_steps: plane-to-plane steps (:func:`plane_to_plane_irls`) after the fine polish when the
             clouds are independent samplings of the surface: fewer than ``coincident_share`` of
             the source points lie within ``coincident_distance`` target point spacings of a target
             point (clouds cut from one sampling share points; a point-to-point fit is exact there).
             0: never.
         plane_nu: Welsch scale of those steps, in target point spacings.
+        plane_neighbours, plane_epsilon: the points of each cloud's local planes and their
+            thickness (:func:`surface_covariances`).
         coincident_distance, coincident_share: that test.
         select_nu: scale of the selection cost :func:`fixed_scale_cost`.
         doubtful_select: the final choice after a doubtful first round: ``"polish"``, the
@@ -605,6 +638,8 @@ class RobustOptions:
     fine_fitness: float = 0.95
     plane_steps: int = 10
     plane_nu: float = 1.0
+    plane_neighbours: int = 10
+    plane_epsilon: float = 0.01
     coincident_distance: float = 0.02
     coincident_share: float = 0.01
     select_nu: float = 0.03
@@ -632,6 +667,7 @@ class RobustOptions:
             "polish_end",
             "fine_end",
             "plane_nu",
+            "plane_epsilon",
             "coincident_distance",
             "select_nu",
             "distinct_deg",
@@ -654,6 +690,8 @@ class RobustOptions:
         for name in ("min_fitness", "fine_fitness", "coincident_share"):
             if not 0 <= getattr(self, name) <= 1:
                 raise ValueError(f"{name} must be in [0, 1], got {getattr(self, name)}")
+        if self.plane_neighbours < 3:
+            raise ValueError(f"plane_neighbours must be >= 3 (a plane needs 3 points), got {self.plane_neighbours}")
         if self.doubt_ratio < 1:
             raise ValueError(f"doubt_ratio must be >= 1, got {self.doubt_ratio}")
         if self.doubtful_select not in ("polish", "fixed"):
@@ -876,8 +914,16 @@ class RobustRegistration:
             distances, _ = tgt_tree.query(apply(chosen, src_s)[0], workers=1)
             coincident = float((distances <= options.coincident_distance * spacing).mean())
             if coincident < options.coincident_share:
-                normals = pca_normals(tgt_s)
-                chosen = plane_irls(chosen, src_s, tgt_tree, normals, options.plane_nu * spacing, options.plane_steps)
+                k, epsilon = options.plane_neighbours, options.plane_epsilon
+                chosen = plane_to_plane_irls(
+                    chosen,
+                    src_s,
+                    surface_covariances(src_s, k, epsilon),
+                    tgt_tree,
+                    surface_covariances(tgt_s, k, epsilon),
+                    options.plane_nu * spacing,
+                    options.plane_steps,
+                )
         transform = as_matrices(chosen)[0]
         transform[:3, 3] *= radius
         info = {

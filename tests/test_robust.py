@@ -25,19 +25,21 @@ from linereg.registration.robust import (
     cdw_gradient,
     cdw_irls,
     cdw_value,
+    cross_matrices,
     cube_rotations,
     degeneracy,
     distinct_best,
     fine_scales,
     fixed_scale_cost,
     pca_normals,
-    plane_irls,
+    plane_to_plane_irls,
     point_spacing,
     polish_scales,
     pose_search,
     rodrigues,
     rotation_gap_deg,
     spread_rotations,
+    surface_covariances,
     weighted_procrustes,
     welsch_irls,
 )
@@ -180,6 +182,10 @@ def test_options_are_checked():
         RobustOptions(min_fitness=1.5)
     with pytest.raises(ValueError, match="plane_steps must be >= 0"):
         RobustOptions(plane_steps=-1)
+    with pytest.raises(ValueError, match="plane_neighbours must be >= 3"):
+        RobustOptions(plane_neighbours=2)
+    with pytest.raises(ValueError, match="plane_epsilon must be > 0"):
+        RobustOptions(plane_epsilon=0.0)
     with pytest.raises(ValueError, match="coincident_share must be in"):
         RobustOptions(coincident_share=2.0)
     with pytest.raises(ValueError, match="doubtful_select must be 'polish' or 'fixed'"):
@@ -408,20 +414,38 @@ def test_pca_normals_are_the_surface_normals():
     assert np.median(np.abs((pca_normals(sphere) * sphere).sum(axis=1))) > 0.99
 
 
-def test_point_to_plane_steps_remove_the_sampling_offset_of_independent_samplings():
+def test_cross_matrices_are_the_cross_product():
+    rng = np.random.default_rng(0)
+    v, u = rng.normal(size=(2, 5, 4, 3))
+    np.testing.assert_allclose((cross_matrices(v) @ u[..., None])[..., 0], np.cross(v, u), atol=1e-12)
+
+
+def test_surface_covariances_are_thin_discs_along_the_surface():
+    rng = np.random.default_rng(0)
+    plane = np.column_stack([rng.uniform(-1, 1, (300, 2)), np.zeros(300)])
+    covariances = surface_covariances(plane, 10, 0.01)
+    np.testing.assert_allclose(covariances[:, 2, 2], 0.01, atol=1e-9)
+    np.testing.assert_allclose(np.linalg.eigvalsh(covariances), np.tile([0.01, 1.0, 1.0], (300, 1)), atol=1e-9)
+
+
+def test_plane_to_plane_steps_remove_the_sampling_offset_of_independent_samplings():
     """Two independent samplings of one surface: point-to-point Welsch IRLS stalls about 0.6 deg
-    off (each source point is pulled to a target sample, not to the surface); the point-to-plane
-    steps from there land within 0.05 deg."""
+    off (each source point is pulled to a target sample, not to the surface); the plane-to-plane
+    steps from there land within 0.05 deg, for every one of a batch of poses as for each alone."""
     truth = pose([20, -10, 5], [0.1, 0.0, 0.05])
     src, tgt = surface(600, 1), apply(truth, surface(3000, 2))
     tree = cKDTree(tgt)
     spacing = point_spacing(tgt, tree)
-    start = pose([20.8, -10.5, 5.3], [0.11, 0.01, 0.05])
-    points = welsch_irls(as_poses(start[None]), src, tree, np.full(20, 0.3 * spacing), 60)
-    plane = plane_irls(points, src, tree, pca_normals(tgt), spacing, 10)
-    point_error = float(rotation_gap_deg(points[0], truth[:3, :3])[0])
-    plane_error = float(rotation_gap_deg(plane[0], truth[:3, :3])[0])
-    assert plane_error < 0.05 and plane_error < 0.1 * point_error
+    starts = np.stack([pose([20.8, -10.5, 5.3], [0.11, 0.01, 0.05]), pose([19.5, -9.7, 4.6], [0.09, 0.0, 0.06])])
+    points = welsch_irls(as_poses(starts), src, tree, np.full(20, 0.3 * spacing), 60)
+    src_cov, tgt_cov = surface_covariances(src), surface_covariances(tgt)
+    planes = plane_to_plane_irls(points, src, src_cov, tree, tgt_cov, spacing, 10)
+    point_error = rotation_gap_deg(points[0], truth[:3, :3])
+    plane_error = rotation_gap_deg(planes[0], truth[:3, :3])
+    assert (plane_error < 0.05).all() and (plane_error < 0.1 * point_error).all()
+    alone = plane_to_plane_irls((points[0][1:], points[1][1:]), src, src_cov, tree, tgt_cov, spacing, 10)
+    np.testing.assert_allclose(alone[0][0], planes[0][1], atol=1e-10)
+    np.testing.assert_allclose(alone[1][0], planes[1][1], atol=1e-10)
 
 
 def test_the_plane_steps_run_on_independent_samplings_only(partial_pair):

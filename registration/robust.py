@@ -753,7 +753,7 @@ class RobustRegistration:
     merged), the chosen pose's ``cost`` at ``select_nu``, ``selection`` (``"fixed"``, or
     ``"polish"`` after a doubtful first round: ``doubtful_select``), ``fine`` (the chosen pose got
     the fine polish), ``coincident`` (after it: the share of source points on a target point;
-    ``None`` without it), ``plane`` (the point-to-plane steps ran) and ``warnings``
+    ``None`` without it), ``plane`` (the plane-to-plane steps ran) and ``warnings``
     (collinear clouds).
 
     Args:

@@ -7,7 +7,7 @@
 For every pair of a benchmark source (``configs/benchmark/<source>.yaml``) it runs the ``register``
 default without its last steps (``plane_steps: 0``: the point-to-point pose after the fine
 polish), then refines that pose with ``--steps`` Gauss-Newton steps of each variant of
-:func:`registration.robust.plane_to_plane_irls` at the default's Welsch scale (``plane_nu``
+:func:`linereg.registration.robust.plane_to_plane_irls` at the default's Welsch scale (``plane_nu``
 target point spacings):
 
 * ``point-to-plane``: no source covariance and a flat target disc (thickness 1e-6), the

@@ -68,7 +68,7 @@ def test_default_is_the_label_free_easy_pose_recipe():
     assert cfg.scheduler.name == "cosine" and cfg.trainer.num_points == 256
     assert cfg.trainer.evaluate_checkpoint == "last"  # no label chooses the checkpoint
     terms = OmegaConf.to_container(cfg.loss, resolve=True)["terms"]
-    assert terms["outlier"]["weight"] == 1.0 and terms["alignment"]["name"] == "line_intersection"
+    assert terms["outlier"]["weight"] == 0.3 and terms["alignment"]["name"] == "line_intersection"
 
 
 @pytest.mark.parametrize("experiment", EXPERIMENTS)

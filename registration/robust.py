@@ -909,11 +909,12 @@ class RobustRegistration:
         fine = fitness >= options.fine_fitness and len(fine_nus) > 0
         if fine:
             chosen = welsch_irls(chosen, src_s, tgt_tree, fine_nus, options.polish_settle)
-        coincident = None
+        coincident, plane = None, False
         if fine and options.plane_steps > 0:
             distances, _ = tgt_tree.query(apply(chosen, src_s)[0], workers=1)
             coincident = float((distances <= options.coincident_distance * spacing).mean())
-            if coincident < options.coincident_share:
+            plane = coincident < options.coincident_share
+            if plane:
                 k, epsilon = options.plane_neighbours, options.plane_epsilon
                 chosen = plane_to_plane_irls(
                     chosen,
@@ -936,7 +937,7 @@ class RobustRegistration:
             "selection": selection,
             "fine": fine,
             "coincident": coincident,
-            "plane": coincident is not None and coincident < options.coincident_share,
+            "plane": plane,
         }
         return MethodResult(transform=transform, info=info)
 

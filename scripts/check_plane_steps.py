@@ -26,27 +26,29 @@ import sys
 from pathlib import Path
 
 import numpy as np
+import torch
 from scipy.spatial import cKDTree
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from linereg.datasets.benchmark_pairs import select_pairs
+from linereg.metrics import registration_errors
 from linereg.registration.methods import METHODS
 from linereg.registration.robust import (
     RobustOptions,
     as_matrices,
     plane_to_plane_irls,
     point_spacing,
-    rotation_gap_deg,
     surface_covariances,
 )
 
 
 def errors(transform: np.ndarray, truth: np.ndarray, src: np.ndarray) -> tuple[float, float]:
-    """Err_R in degrees and Err_pw (mean l2 distance of the source points under both transforms)."""
-    err_r = float(rotation_gap_deg(transform[None, :3, :3], truth[:3, :3])[0])
-    offset = src @ (transform[:3, :3] - truth[:3, :3]).T + (transform[:3, 3] - truth[:3, 3])
-    return err_r, float(np.linalg.norm(offset, axis=1).mean())
+    """Err_R (degrees) and Err_pw l2 of one pair, as the benchmark scores it (:func:`registration_errors`)."""
+    values = registration_errors(
+        torch.from_numpy(transform)[None], torch.from_numpy(truth)[None], torch.from_numpy(src)[None]
+    )
+    return float(values["err_r_deg"][0]), float(values["err_pw_l2"][0])
 
 
 def main() -> None:

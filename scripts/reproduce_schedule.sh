@@ -9,13 +9,17 @@
 #   CELLS="dcp_untrained dcp_reg dcp_gt dcp_cd dcp_ours" scripts/reproduce_schedule.sh
 #   PROTOCOL=airplane CELLS="rpm_gt rpm_cd rpm_ours rpm_untrained" scripts/reproduce_schedule.sh
 #   DRY=1 CELLS=... scripts/reproduce_schedule.sh      # print each run's overrides, run nothing
+#   RPM_OUTLIER_WEIGHT=0.3 OUT=outputs/schedule_w03 CELLS="rpm_cd rpm_ours" scripts/reproduce_schedule.sh
+#   EXTRA="loss.nu0=1.0" OUT=outputs/schedule_nu1 CELLS=rpm_ours scripts/reproduce_schedule.sh
 #
 # PROTOCOL: procedural (the embedded pairs, no download), airplane or human (configs/reproduce/,
 # the shared data). Cells are <backbone>_<loss> for rpm, dcp and fmr: untrained, reg, gt, cd,
 # ours (and rpm_ours_quick). FMR-CD is FMR's reconstruction term alone (its own unsupervised
 # loss), so fmr_reg only differs from it by the term's weight (0.001, as in FMR-Ours).
 # Finished cells (metrics.json present) are skipped; an interrupted one resumes from its last
-# checkpoint. Runs land in $OUT/$PROTOCOL (default outputs/schedule); each run uses one thread,
+# checkpoint. RPM_OUTLIER_WEIGHT (default 1) is RPM-Net's outlier weight in every unsupervised
+# RPM-Net cell; EXTRA holds overrides added to every cell (give such a study its own OUT).
+# Runs land in $OUT/$PROTOCOL (default outputs/schedule); each run uses one thread,
 # so two can share a 2-core machine; $dir.cpu records each attempt's user and system CPU seconds.
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -25,6 +29,8 @@ SEEDS=${SEEDS:-0}
 PROTOCOL=${PROTOCOL:-procedural}
 CELLS=${CELLS:-rpm_untrained rpm_reg rpm_gt rpm_cd rpm_ours rpm_ours_quick}
 DRY=${DRY:-0}
+RPM_OUTLIER_WEIGHT=${RPM_OUTLIER_WEIGHT:-1}
+read -r -a EXTRA <<< "${EXTRA:-}"
 export OMP_NUM_THREADS=${OMP_NUM_THREADS:-1}
 
 # Everything the cells rely on is pinned here, so that changes of the embedded default
@@ -43,7 +49,7 @@ EASY_ALL=(curriculum.stages.easy.subset=null curriculum.stages.easy.epochs=4 cur
 RPM=(model=rpmnet_cpu)
 DCP=(model=dcp_v2 model.emb_dims=256 model.ff_dims=512)
 FMR=(model=fmr)
-UNSUPERVISED_RPM=(loss.terms.outlier.weight=1)
+UNSUPERVISED_RPM=("loss.terms.outlier.weight=$RPM_OUTLIER_WEIGHT")
 # The paper's line loss with 5000 lines (the embedded default's loss when this study was run).
 LINES=(loss.num_lines=5000)
 
@@ -76,6 +82,7 @@ for seed in $SEEDS; do
     dir=$OUT/$PROTOCOL/${name}_s$seed
     args=$(overrides "$name")
     read -r -a extra <<< "$args"
+    extra+=("${EXTRA[@]}")
     if [[ $DRY != 0 ]]; then
       echo "$name seed=$seed ${COMMON[*]} ${extra[*]}"
       continue

@@ -39,8 +39,8 @@ COMMON=(trainer.num_points=256 trainer.threads=1 trainer.progress=false trainer.
   trainer.evaluate_checkpoint=last optimizer=adam optimizer.lr=1e-3 scheduler=cosine curriculum=quick)
 case $PROTOCOL in
   procedural) COMMON+=(dataset=procedural) ;;
-  airplane | human) COMMON+=("reproduce=$PROTOCOL") ;;
-  *) echo "unknown PROTOCOL $PROTOCOL (procedural, airplane, human)" >&2; exit 2 ;;
+  airplane | human | real) COMMON+=("reproduce=$PROTOCOL") ;;
+  *) echo "unknown PROTOCOL $PROTOCOL (procedural, airplane, human, real)" >&2; exit 2 ;;
 esac
 # One stage: the easy variant (poses <= 15 deg, more overlap) of all training pairs, 4 epochs.
 EASY_ALL=(curriculum.stages.easy.subset=null curriculum.stages.easy.epochs=4 curriculum.stages.subset.epochs=0

@@ -14,7 +14,7 @@ from tests.test_configs import ROOT, build_components, compose_config
 SCRIPT = ROOT / "scripts" / "reproduce_schedule.sh"
 BACKBONES = {"rpm": "rpmnet", "dcp": "dcp_v2", "fmr": "fmr"}
 CELLS = [f"{b}_{loss}" for b in BACKBONES for loss in ("untrained", "reg", "gt", "cd", "ours")] + ["rpm_ours_quick"]
-DATASETS = {"procedural": "procedural", "airplane": "modelnet40", "human": "mesh_folder"}
+DATASETS = {"procedural": "procedural", "airplane": "modelnet40", "human": "mesh_folder", "real": "rgbd_sequence"}
 
 
 def dry_run(protocol: str, cells: list[str], seeds: str = "0") -> subprocess.CompletedProcess:

@@ -77,8 +77,9 @@ IDENTITY = "identity"
 CONTROLS = ("untrained", "reg")
 ROW_ORDER = (
     [IDENTITY, "icp_point", "icp_plane", "fricp", "fgr"]
-    + [f"{b}_{loss}" for b in ("dcp", "fmr", "rpm") for loss in (*CONTROLS, "gt", "cd", "ours")]
+    + [f"{b}_{loss}" for b in ("dcp", "fmr", "rpm") for loss in (*CONTROLS, "gt", "cd", "ours", "ours_nu2")]
     + ["rpm_ours_quick", "rpm_ours_fixed_nu", "rpm_gt_procedural", "rpm_gt_finetuned"]
+    + ["rpm_pretrained", "rpm_cd_finetuned", "rpm_ours_finetuned", "rpm_ours_nu2_finetuned"]
 )
 CELL = re.compile(r"(?P<cell>.+)_s(?P<seed>\d+)$")
 

@@ -14,7 +14,10 @@
 #
 # PROTOCOL: procedural (the embedded pairs, no download), airplane or human (configs/reproduce/,
 # the shared data). Cells are <backbone>_<loss> for rpm, dcp and fmr: untrained, reg, gt, cd,
-# ours (and rpm_ours_quick). FMR-CD is FMR's reconstruction term alone (its own unsupervised
+# ours (and rpm_ours_quick); <backbone>_ours_nu2 is the line loss with the Welsch scale factor
+# nu0 = 2 instead of the paper's 0.5 (issue #13). With INIT_FROM=<run of a supervised model>,
+# rpm_pretrained evaluates that model as it is, and rpm_<cd|ours|ours_nu2>_finetuned fine-tune it
+# without labels (the Real protocol's fine-tuning study). FMR-CD is FMR's reconstruction term alone (its own unsupervised
 # loss), so fmr_reg only differs from it by the term's weight (0.001, as in FMR-Ours).
 # Finished cells (metrics.json present) are skipped; an interrupted one resumes from its last
 # checkpoint. RPM_OUTLIER_WEIGHT (default 1) is RPM-Net's outlier weight in every unsupervised
@@ -29,6 +32,7 @@ SEEDS=${SEEDS:-0}
 PROTOCOL=${PROTOCOL:-procedural}
 CELLS=${CELLS:-rpm_untrained rpm_reg rpm_gt rpm_cd rpm_ours rpm_ours_quick}
 DRY=${DRY:-0}
+INIT_FROM=${INIT_FROM:-}
 RPM_OUTLIER_WEIGHT=${RPM_OUTLIER_WEIGHT:-1}
 read -r -a EXTRA <<< "${EXTRA:-}"
 export OMP_NUM_THREADS=${OMP_NUM_THREADS:-1}
@@ -52,6 +56,7 @@ FMR=(model=fmr)
 UNSUPERVISED_RPM=("loss.terms.outlier.weight=$RPM_OUTLIER_WEIGHT")
 # The paper's line loss with 5000 lines (the embedded default's loss when this study was run).
 LINES=(loss.num_lines=5000)
+NU2=(loss.nu0=2.0)
 
 overrides() {
   case $1 in
@@ -60,18 +65,28 @@ overrides() {
     rpm_gt) echo "${RPM[*]} loss=rpm_gt ${EASY_ALL[*]}" ;;
     rpm_cd) echo "${RPM[*]} loss=rpm_cd ${UNSUPERVISED_RPM[*]} ${EASY_ALL[*]}" ;;
     rpm_ours) echo "${RPM[*]} loss=rpm_ours ${LINES[*]} ${UNSUPERVISED_RPM[*]} ${EASY_ALL[*]}" ;;
+    rpm_ours_nu2) echo "${RPM[*]} loss=rpm_ours ${LINES[*]} ${NU2[*]} ${UNSUPERVISED_RPM[*]} ${EASY_ALL[*]}" ;;
+    rpm_pretrained | rpm_*_finetuned)
+      [[ -n $INIT_FROM ]] || { echo "cell $1 needs INIT_FROM=<run of a supervised model>" >&2; return 2; }
+      case $1 in
+        rpm_pretrained) echo "$(overrides rpm_untrained) init_from=$INIT_FROM" ;;
+        rpm_cd_finetuned | rpm_ours_finetuned | rpm_ours_nu2_finetuned) echo "$(overrides "${1%_finetuned}") init_from=$INIT_FROM" ;;
+        *) echo "unknown cell $1" >&2; return 2 ;;
+      esac ;;
     rpm_ours_quick) echo "${RPM[*]} loss=rpm_ours ${LINES[*]} ${UNSUPERVISED_RPM[*]}" ;;  # the quick 3-stage curriculum
     dcp_untrained) echo "${DCP[*]} loss=dcp_ours ${LINES[*]} trainer.untrained=true" ;;
     dcp_reg) echo "${DCP[*]} loss=dcp_ours ${LINES[*]} ${EASY_ALL[*]} loss.terms.alignment.weight=0" ;;
     dcp_gt) echo "${DCP[*]} loss=dcp_gt ${EASY_ALL[*]}" ;;
     dcp_cd) echo "${DCP[*]} loss=dcp_cd ${EASY_ALL[*]}" ;;
     dcp_ours) echo "${DCP[*]} loss=dcp_ours ${LINES[*]} ${EASY_ALL[*]}" ;;
+    dcp_ours_nu2) echo "${DCP[*]} loss=dcp_ours ${LINES[*]} ${NU2[*]} ${EASY_ALL[*]}" ;;
     fmr_untrained) echo "${FMR[*]} loss=fmr_ours ${LINES[*]} trainer.untrained=true" ;;
     fmr_reg) echo "${FMR[*]} loss=fmr_ours ${LINES[*]} ${EASY_ALL[*]} loss.terms.alignment.weight=0" ;;
     fmr_gt) echo "${FMR[*]} loss=fmr_gt ${EASY_ALL[*]}" ;;
     fmr_cd) echo "${FMR[*]} loss=fmr_cd ${EASY_ALL[*]}" ;;
     fmr_ours) echo "${FMR[*]} loss=fmr_ours ${LINES[*]} ${EASY_ALL[*]}" ;;
-    *) echo "unknown cell $1 (<rpm|dcp|fmr>_<untrained|reg|gt|cd|ours>, rpm_ours_quick)" >&2; return 2 ;;
+    fmr_ours_nu2) echo "${FMR[*]} loss=fmr_ours ${LINES[*]} ${NU2[*]} ${EASY_ALL[*]}" ;;
+    *) echo "unknown cell $1 (<rpm|dcp|fmr>_<untrained|reg|gt|cd|ours|ours_nu2>, rpm_ours_quick, rpm_pretrained, rpm_<cd|ours|ours_nu2>_finetuned)" >&2; return 2 ;;
   esac
 }
 

@@ -13,7 +13,8 @@ from tests.test_configs import ROOT, build_components, compose_config
 
 SCRIPT = ROOT / "scripts" / "reproduce_schedule.sh"
 BACKBONES = {"rpm": "rpmnet", "dcp": "dcp_v2", "fmr": "fmr"}
-CELLS = [f"{b}_{loss}" for b in BACKBONES for loss in ("untrained", "reg", "gt", "cd", "ours")] + ["rpm_ours_quick"]
+LOSSES = ("untrained", "reg", "gt", "cd", "ours", "ours_nu2")
+CELLS = [f"{b}_{loss}" for b in BACKBONES for loss in LOSSES] + ["rpm_ours_quick"]
 DATASETS = {"procedural": "procedural", "airplane": "modelnet40", "human": "mesh_folder", "real": "rgbd_sequence"}
 
 
@@ -53,6 +54,7 @@ def test_every_cell_composes_with_one_schedule(protocol):
         else:
             assert alignment.name == "line_intersection" and alignment.weight == (0 if loss == "reg" else 1)
             assert cfg.loss.num_lines == 5000
+            assert cfg.loss.nu0 == (2.0 if loss == "ours_nu2" else None)  # None: the paper's 0.5
         if backbone == "rpm" and loss not in ("gt", "untrained"):
             assert cfg.loss.terms.outlier.weight == 1
         if backbone == "dcp":
@@ -65,6 +67,20 @@ def test_unknown_cell_or_protocol_fails_before_running():
     assert result.returncode == 2 and "unknown cell rpm_typo" in result.stderr and result.stdout == ""
     result = dry_run("kitti", ["rpm_ours"])
     assert result.returncode == 2 and "unknown PROTOCOL kitti" in result.stderr
+
+
+def test_fine_tuning_cells_start_from_init_from():
+    result = dry_run("real", ["rpm_pretrained"])
+    assert result.returncode == 2 and "rpm_pretrained needs INIT_FROM" in result.stderr
+    env = os.environ | {"DRY": "1", "PROTOCOL": "real", "INIT_FROM": "/runs/rpm_gt_s0"}
+    env["CELLS"] = "rpm_pretrained rpm_cd_finetuned rpm_ours_nu2_finetuned"
+    result = subprocess.run(["bash", str(SCRIPT)], env=env, capture_output=True, text=True, check=True)
+    runs = {line.split()[0]: line.split()[2:] for line in result.stdout.splitlines()}
+    assert runs["rpm_pretrained"] == [*cell_overrides("real")["rpm_untrained"], "init_from=/runs/rpm_gt_s0"]
+    for cell in ("rpm_cd", "rpm_ours_nu2"):
+        assert runs[f"{cell}_finetuned"] == [*cell_overrides("real")[cell], "init_from=/runs/rpm_gt_s0"]
+    cfg = compose_config(overrides=runs["rpm_ours_nu2_finetuned"])
+    assert cfg.init_from == "/runs/rpm_gt_s0" and cfg.dataset.name == "rgbd_sequence" and cfg.loss.nu0 == 2.0
 
 
 def test_seeds_repeat_every_cell():

@@ -65,27 +65,23 @@ overrides() {
     rpm_gt) echo "${RPM[*]} loss=rpm_gt ${EASY_ALL[*]}" ;;
     rpm_cd) echo "${RPM[*]} loss=rpm_cd ${UNSUPERVISED_RPM[*]} ${EASY_ALL[*]}" ;;
     rpm_ours) echo "${RPM[*]} loss=rpm_ours ${LINES[*]} ${UNSUPERVISED_RPM[*]} ${EASY_ALL[*]}" ;;
-    rpm_ours_nu2) echo "${RPM[*]} loss=rpm_ours ${LINES[*]} ${NU2[*]} ${UNSUPERVISED_RPM[*]} ${EASY_ALL[*]}" ;;
-    rpm_pretrained | rpm_*_finetuned)
+    rpm_ours_nu2 | dcp_ours_nu2 | fmr_ours_nu2) echo "$(overrides "${1%_nu2}") ${NU2[*]}" ;;
+    rpm_pretrained | rpm_cd_finetuned | rpm_ours_finetuned | rpm_ours_nu2_finetuned)
       [[ -n $INIT_FROM ]] || { echo "cell $1 needs INIT_FROM=<run of a supervised model>" >&2; return 2; }
-      case $1 in
-        rpm_pretrained) echo "$(overrides rpm_untrained) init_from=$INIT_FROM" ;;
-        rpm_cd_finetuned | rpm_ours_finetuned | rpm_ours_nu2_finetuned) echo "$(overrides "${1%_finetuned}") init_from=$INIT_FROM" ;;
-        *) echo "unknown cell $1" >&2; return 2 ;;
-      esac ;;
+      local base=${1%_finetuned}
+      [[ $1 == rpm_pretrained ]] && base=rpm_untrained
+      echo "$(overrides "$base") init_from=$INIT_FROM" ;;
     rpm_ours_quick) echo "${RPM[*]} loss=rpm_ours ${LINES[*]} ${UNSUPERVISED_RPM[*]}" ;;  # the quick 3-stage curriculum
     dcp_untrained) echo "${DCP[*]} loss=dcp_ours ${LINES[*]} trainer.untrained=true" ;;
     dcp_reg) echo "${DCP[*]} loss=dcp_ours ${LINES[*]} ${EASY_ALL[*]} loss.terms.alignment.weight=0" ;;
     dcp_gt) echo "${DCP[*]} loss=dcp_gt ${EASY_ALL[*]}" ;;
     dcp_cd) echo "${DCP[*]} loss=dcp_cd ${EASY_ALL[*]}" ;;
     dcp_ours) echo "${DCP[*]} loss=dcp_ours ${LINES[*]} ${EASY_ALL[*]}" ;;
-    dcp_ours_nu2) echo "${DCP[*]} loss=dcp_ours ${LINES[*]} ${NU2[*]} ${EASY_ALL[*]}" ;;
     fmr_untrained) echo "${FMR[*]} loss=fmr_ours ${LINES[*]} trainer.untrained=true" ;;
     fmr_reg) echo "${FMR[*]} loss=fmr_ours ${LINES[*]} ${EASY_ALL[*]} loss.terms.alignment.weight=0" ;;
     fmr_gt) echo "${FMR[*]} loss=fmr_gt ${EASY_ALL[*]}" ;;
     fmr_cd) echo "${FMR[*]} loss=fmr_cd ${EASY_ALL[*]}" ;;
     fmr_ours) echo "${FMR[*]} loss=fmr_ours ${LINES[*]} ${EASY_ALL[*]}" ;;
-    fmr_ours_nu2) echo "${FMR[*]} loss=fmr_ours ${LINES[*]} ${NU2[*]} ${EASY_ALL[*]}" ;;
     *) echo "unknown cell $1 (<rpm|dcp|fmr>_<untrained|reg|gt|cd|ours|ours_nu2>, rpm_ours_quick, rpm_pretrained, rpm_<cd|ours|ours_nu2>_finetuned)" >&2; return 2 ;;
   esac
 }

@@ -39,5 +39,5 @@ lint: setup  ## ruff
 train: setup  ## train the embedded default: RPM-Net + line loss on procedural shapes (~10 min on 2 CPU cores)
 	$(PY) -m train
 
-train-full: setup  ## the paper's RPM-Net + line-loss configuration (python -m train experiment=rpm_ours)
-	$(PY) -m train experiment=rpm_ours
+train-full: setup  ## the paper's RPM-Net + line-loss configuration (python -m train experiment=rpm_ours recipe=paper)
+	$(PY) -m train experiment=rpm_ours recipe=paper

@@ -60,7 +60,7 @@ NU2=(loss.nu0=2.0)
 
 overrides() {
   case $1 in
-    rpm_untrained) echo "${RPM[*]} loss=rpm_ours ${LINES[*]} trainer.untrained=true" ;;
+    rpm_untrained) echo "${RPM[*]} loss=rpm_ours ${LINES[*]} ${UNSUPERVISED_RPM[*]} trainer.untrained=true" ;;
     rpm_reg) echo "${RPM[*]} loss=rpm_ours ${LINES[*]} ${UNSUPERVISED_RPM[*]} ${EASY_ALL[*]} loss.terms.alignment.weight=0" ;;
     rpm_gt) echo "${RPM[*]} loss=rpm_gt ${EASY_ALL[*]}" ;;
     rpm_cd) echo "${RPM[*]} loss=rpm_cd ${UNSUPERVISED_RPM[*]} ${EASY_ALL[*]}" ;;

@@ -72,11 +72,33 @@ def test_default_is_the_label_free_easy_pose_recipe():
 
 
 @pytest.mark.parametrize("experiment", EXPERIMENTS)
-def test_experiments_keep_their_schedule_and_checkpoint(experiment):
-    """The embedded default's schedule does not leak into the paper's experiments or the grids."""
-    for extra in ([], ["reproduce=airplane"]):
+def test_recipe_cpu_replaces_the_schedule_of_experiments_and_grids(experiment):
+    """The default recipe=cpu (issue #13) wins over the experiment's and the scale's schedule."""
+    for extra in ([], ["reproduce=airplane"], ["reproduce=human"], ["reproduce=real"]):
         cfg = compose_config(overrides=[f"experiment={experiment}", *extra])
+        curriculum = Curriculum.from_config(cfg.curriculum)
+        assert [(s.name, s.variant, s.subset) for s in curriculum.stages] == [("easy", "easy", None)], extra
+        assert curriculum.stages[0].learning_rate(cfg.optimizer.lr) == pytest.approx(1e-3)
+        assert cfg.scheduler.name == "cosine" and cfg.trainer.evaluate_checkpoint == "last"
+        assert cfg.trainer.num_points == 256
+        terms = OmegaConf.to_container(cfg.loss, resolve=True)["terms"]
+        if "outlier" in terms:
+            assert terms["outlier"]["weight"] == 0.3
+        if terms.get("alignment", {}).get("name") == "line_intersection":
+            assert terms["alignment"]["num_lines"] == 5000
+        build_components(cfg)
+
+
+@pytest.mark.parametrize("experiment", EXPERIMENTS)
+def test_recipe_paper_keeps_the_experiments_schedule_and_checkpoint(experiment):
+    """``recipe=paper`` is one switch back to the paper's settings, alone or at a grid's scale."""
+    for extra in ([], ["reproduce=airplane"]):
+        cfg = compose_config(overrides=[f"experiment={experiment}", "recipe=paper", *extra])
         assert cfg.scheduler.name == "constant" and cfg.trainer.evaluate_checkpoint == "best"
+        terms = OmegaConf.to_container(cfg.loss, resolve=True)["terms"]
+        if "outlier" in terms:
+            assert terms["outlier"]["weight"] == 10.0
+
 
 @pytest.mark.parametrize("experiment", EXPERIMENTS)
 def test_experiment_composes_and_builds(experiment):
@@ -91,7 +113,7 @@ def test_experiment_composes_and_builds(experiment):
 )
 def test_experiment_values_win_over_train_yaml(experiment, lr, lines, radius):
     """``_self_`` first in train.yaml: the experiment's values are the ones used (notes §0 #7)."""
-    cfg = compose_config(overrides=[f"experiment={experiment}"])
+    cfg = compose_config(overrides=[f"experiment={experiment}", "recipe=paper"])
     assert cfg.optimizer.lr == pytest.approx(lr)
     alignment = OmegaConf.to_container(cfg.loss, resolve=True)["terms"]["alignment"]
     assert (alignment["num_lines"], alignment["radius_factor"]) == (lines, radius)
@@ -101,7 +123,9 @@ def test_experiment_values_win_over_train_yaml(experiment, lr, lines, radius):
 
 def test_paper_loss_weights():
     terms = {
-        name: OmegaConf.to_container(compose_config(overrides=[f"experiment={name}"]).loss.terms, resolve=True)
+        name: OmegaConf.to_container(
+            compose_config(overrides=[f"experiment={name}", "recipe=paper"]).loss.terms, resolve=True
+        )
         for name in ("rpm_ours", "dcp_ours", "fmr_ours")
     }
     assert terms["rpm_ours"]["outlier"]["weight"] == 10.0 and terms["rpm_ours"]["alignment"]["weight"] == 1.0
@@ -111,7 +135,7 @@ def test_paper_loss_weights():
 
 
 @pytest.mark.parametrize(
-    "group", ["model", "loss", "dataset", "curriculum", "optimizer", "scheduler", "logger", "debug"]
+    "group", ["model", "loss", "dataset", "curriculum", "optimizer", "scheduler", "logger", "debug", "recipe"]
 )
 def test_every_group_option_composes(group):
     for option in sorted(p.stem for p in (CONFIGS / group).glob("*.yaml")):
@@ -227,12 +251,15 @@ REPRODUCE = sorted(p.stem for p in (CONFIGS / "reproduce").glob("*.yaml"))
 @pytest.mark.parametrize("experiment", ["rpm_ours", "dcp_cd", "fmr_gt"])
 def test_reproduce_scale_wins_over_the_experiment(reproduce, experiment):
     """``reproduce=...`` (scripts/reproduce.sh) sets one scale for every cell of a table."""
-    cfg = compose_config(overrides=[f"experiment={experiment}", f"reproduce={reproduce}"])
+    cfg = compose_config(overrides=[f"experiment={experiment}", f"reproduce={reproduce}", "recipe=paper"])
     task_name = OmegaConf.to_container(cfg, resolve=False)["task_name"]
     assert task_name == f"${{hydra:runtime.choices.experiment}}_{reproduce}"  # resolved in a Hydra run
     assert cfg.trainer.num_points == 256 and cfg.trainer.threads == 1 and cfg.trainer.device == "cpu"
     assert cfg.optimizer.lr == pytest.approx(1e-4)
-    assert set(cfg.curriculum.stages) == {"easy", "subset", "full"}
+    full_epochs = {"human": 8, "real": 6}.get(reproduce, 2)  # the small training sets get more
+    assert [(s.name, s.epochs) for s in Curriculum.from_config(cfg.curriculum).stages] == [
+        ("easy", 3), ("subset", 1), ("full", full_epochs)
+    ]
     assert cfg.dataset.name == {"airplane": "modelnet40", "human": "mesh_folder", "real": "rgbd_sequence"}.get(
         reproduce, "procedural"
     )

@@ -89,6 +89,15 @@ def test_recipe_cpu_replaces_the_schedule_of_experiments_and_grids(experiment):
         build_components(cfg)
 
 
+def test_recipe_values_are_overridable_and_reach_every_unsupervised_rpm_loss():
+    """``recipe.<key>=...`` changes the loss of every cell alike (fair comparisons, issue #13)."""
+    for experiment in ("rpm_ours", "rpm_cd", "rpm_cdw"):
+        cfg = compose_config(overrides=[f"experiment={experiment}", "recipe.rpm_outlier_weight=1"])
+        assert build_loss(cfg.loss).weights["outlier"] == 1.0
+    cfg = compose_config(overrides=["experiment=fmr_ours", "recipe.num_lines=2000"])
+    assert build_loss(cfg.loss).parts["alignment"].options.num_lines == 2000
+
+
 @pytest.mark.parametrize("experiment", EXPERIMENTS)
 def test_recipe_paper_keeps_the_experiments_schedule_and_checkpoint(experiment):
     """``recipe=paper`` is one switch back to the paper's settings, alone or at a grid's scale."""

@@ -13,6 +13,11 @@ Lucas-Kanade solver (reference-notes §1.3):
    ``g <- exp(dx) g``; it stops early once every sample's ``|dx| < tolerance``;
 4. the centring is undone: ``T = Trans(mean_tgt) g Trans(-mean_src)``.
 
+The features are computed in full float32 on every device: autocast is switched off and cuDNN's
+TF32 convolutions (PyTorch's default on Ampere and newer GPUs) too, since their 10-bit mantissa
+swamps the finite differences of step 2 (on an H200, FMR with TF32 drifted from the CPU result by
+up to 0.32 in the transform's entries).
+
 A decoder (fully connected, ``tanh`` output times ``decoder_scale``) reconstructs each
 centred cloud from its feature, for FMR's unsupervised encoder-decoder (Chamfer) loss. Source
 and target need the same number of points.
@@ -21,6 +26,8 @@ and target need the same number of points.
 from __future__ import annotations
 
 import warnings
+from collections.abc import Iterator
+from contextlib import contextmanager
 
 import torch
 from torch import nn
@@ -74,6 +81,20 @@ def _translation(offset: torch.Tensor) -> torch.Tensor:
     """Pure translations ``(B, 4, 4)`` by ``offset (B, 3)``."""
     eye = torch.eye(3, dtype=offset.dtype, device=offset.device).expand(offset.shape[0], 3, 3)
     return rt_to_matrix(eye, offset)
+
+
+@contextmanager
+def _float32_features(device: torch.device) -> Iterator[None]:
+    """Full float32 inside: no autocast on ``device`` and no TF32 in cuDNN convolutions."""
+    cudnn = torch.backends.cudnn
+    flags = {
+        "enabled": cudnn.enabled,
+        "benchmark": cudnn.benchmark,
+        "benchmark_limit": cudnn.benchmark_limit,
+        "deterministic": cudnn.deterministic,
+    }
+    with torch.autocast(device.type, enabled=False), cudnn.flags(**flags, allow_tf32=False):
+        yield
 
 
 class FMR(nn.Module):
@@ -185,6 +206,10 @@ class FMR(nn.Module):
 
     def forward(self, batch: PairBatch) -> RegistrationOutput:
         check_pair_batch(batch, "FMR", equal_counts=True, dtype=self.dt.dtype)
+        with _float32_features(batch.src_xyz.device):
+            return self._register(batch)
+
+    def _register(self, batch: PairBatch) -> RegistrationOutput:
         src, tgt = batch.src_xyz, batch.tgt_xyz
         src_mean, tgt_mean = src.mean(dim=1), tgt.mean(dim=1)
         src_centred, tgt_centred = src - src_mean[:, None], tgt - tgt_mean[:, None]

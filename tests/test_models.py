@@ -315,15 +315,45 @@ class TestConsistency:
         assert not any("collinear" in str(w.message) for w in caught)
 
 
-@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
-@pytest.mark.parametrize("name", MODEL_NAMES)
-def test_cuda_matches_cpu(name):
+def _cuda_and_cpu_transforms(name: str) -> tuple[torch.Tensor, torch.Tensor]:
     torch.manual_seed(0)
     model = small_model(name).eval()
     batch = make_pair(2, 64)
     expected = model(batch).transform
-    actual = model.to("cuda")(batch.to("cuda")).transform
-    torch.testing.assert_close(actual.cpu(), expected, atol=1e-3, rtol=0)
+    return model.to("cuda")(batch.to("cuda")).transform.cpu(), expected
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+@pytest.mark.parametrize("name", MODEL_NAMES)
+def test_cuda_matches_cpu(name):
+    """The same arithmetic on both devices: float32 convolutions on the GPU (TF32 off)."""
+    with torch.backends.cudnn.flags(enabled=True, allow_tf32=False):
+        actual, expected = _cuda_and_cpu_transforms(name)
+    torch.testing.assert_close(actual, expected, atol=1e-3, rtol=0)
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+def test_fmr_on_cuda_matches_cpu_with_tf32_allowed():
+    """FMR switches TF32 off for its features itself: with it on (an H200: 0.32 apart before)."""
+    with torch.backends.cudnn.flags(enabled=True, allow_tf32=True):
+        actual, expected = _cuda_and_cpu_transforms("fmr")
+    torch.testing.assert_close(actual, expected, atol=1e-3, rtol=0)
+
+
+def test_fmr_features_are_float32_under_autocast_and_tf32():
+    """The CPU twin of the test above: inside FMR, autocast and TF32 convolutions are off."""
+    model = small_model("fmr").eval()
+    seen = []
+    model.encoder.register_forward_hook(
+        lambda _module, _inputs, output: seen.append(
+            (torch.backends.cudnn.allow_tf32, torch.is_autocast_enabled("cpu"), output.dtype)
+        )
+    )
+    with torch.backends.cudnn.flags(enabled=True, allow_tf32=True), torch.autocast("cpu", dtype=torch.bfloat16):
+        output = model(make_pair(2, 32))
+        assert torch.backends.cudnn.allow_tf32 and torch.is_autocast_enabled("cpu")  # restored
+    assert seen and set(seen) == {(False, False, torch.float32)}
+    assert output.transform.dtype == torch.float32
 
 
 class TestRPMNetParts:

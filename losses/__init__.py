@@ -2,7 +2,7 @@
 backbones' supervised losses. ``build_loss({"name": ..., **kwargs})`` builds any of them."""
 
 from . import chamfer, line_intersection, supervised
-from .base import LOSSES, AlignmentLoss, Loss, WeightedSum, build_loss, iteration_weights
+from .base import LOSSES, AlignmentLoss, Loss, WeightedSum, build_loss, iteration_weights, set_training_progress
 
 __all__ = [
     "LOSSES",
@@ -13,5 +13,6 @@ __all__ = [
     "chamfer",
     "iteration_weights",
     "line_intersection",
+    "set_training_progress",
     "supervised",
 ]

@@ -36,6 +36,27 @@ class Loss(nn.Module):
     def compute(self, output: RegistrationOutput, batch: PairBatch) -> LossOutput:
         raise NotImplementedError
 
+    def set_progress(self, fraction: float) -> dict[str, float]:
+        """Move any schedule of this loss to ``fraction`` of training (0: first epoch, 1: last).
+
+        Returns the scheduled values by name (none here: a loss with a schedule overrides this).
+        """
+        return {}
+
+
+def set_training_progress(loss: nn.Module, fraction: float) -> dict[str, float]:
+    """Call :meth:`Loss.set_progress` on every loss inside ``loss`` (the loop does, before each epoch).
+
+    Returns every scheduled value, named ``<module path>.<name>`` (e.g. ``parts.alignment.nu0``).
+    """
+    if not 0.0 <= fraction <= 1.0:
+        raise ValueError(f"training progress must lie in [0, 1], got {fraction}")
+    values = {}
+    for path, module in loss.named_modules():
+        if isinstance(module, Loss):
+            values.update({".".join(filter(None, (path, key))): v for key, v in module.set_progress(fraction).items()})
+    return values
+
 
 def iteration_weights(num_iterations: int, discount: float = 0.5, last_k: int | None = None) -> list[float]:
     """Per-iteration weights ``discount ** (n - 1 - i)``, zero outside the last ``last_k`` iterations.

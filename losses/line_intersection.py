@@ -78,7 +78,7 @@ from __future__ import annotations
 
 import math
 import numbers
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numba
@@ -810,6 +810,9 @@ class LineIntersectionLoss(AlignmentLoss):
         variant: ``paper`` (default), ``authors`` or ``linereg`` (see the module docstring).
         seed: seeds the line generator (reproducible runs); fresh randomness when ``None``.
         discount, last_k, normalize_iterations: iteration weighting (:class:`AlignmentLoss`).
+        nu0_final: anneal the Welsch scale factor during training, geometrically from ``nu0``
+            at the first epoch to ``nu0_final`` at the last (:meth:`set_progress`; the training
+            loop calls it before each epoch); ``None`` keeps ``nu0`` throughout.
         **options: any :class:`LineMetricOptions` field, overriding the variant's default.
     """
 
@@ -820,6 +823,7 @@ class LineIntersectionLoss(AlignmentLoss):
         discount: float = 0.5,
         last_k: int | None = None,
         normalize_iterations: bool = False,
+        nu0_final: float | None = None,
         **options: Any,
     ) -> None:
         super().__init__(discount=discount, last_k=last_k, normalize_iterations=normalize_iterations)
@@ -828,8 +832,25 @@ class LineIntersectionLoss(AlignmentLoss):
         if unknown:
             raise TypeError(f"unknown line_intersection option(s) {sorted(unknown)}; known: {sorted(known)}")
         self.options = LineMetricOptions.for_variant(variant, **options)
+        if nu0_final is not None:
+            if self.options.nu is not None:
+                raise ValueError("nu0_final anneals nu0, which a fixed absolute scale nu overrides: set one of them")
+            if isinstance(nu0_final, bool) or not (
+                isinstance(nu0_final, numbers.Real) and math.isfinite(nu0_final) and nu0_final > 0
+            ):
+                raise ValueError(f"nu0_final must be a finite number > 0 or None, got {nu0_final!r}")
+            nu0_final = float(nu0_final)
+        self.nu0_start = self.options.nu0
+        self.nu0_final = nu0_final
         self.generator = torch.Generator()
         self.generator.manual_seed(seed if seed is not None else int(torch.randint(0, 2**62, ()).item()))
+
+    def set_progress(self, fraction: float) -> dict[str, float]:
+        """Set ``nu0 = nu0_start * (nu0_final / nu0_start) ** fraction``; ``{"nu0": value}``, or ``{}`` unscheduled."""
+        if self.nu0_final is None:
+            return {}
+        self.options = replace(self.options, nu0=self.nu0_start * (self.nu0_final / self.nu0_start) ** fraction)
+        return {"nu0": self.options.nu0}
 
     def metric(self, src, tgt, src_lengths=None, tgt_lengths=None):
         result = line_intersection_metric(

@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 import torch
 
-from linereg.losses import LOSSES, WeightedSum, build_loss
+from linereg.losses import LOSSES, WeightedSum, build_loss, set_training_progress
 from linereg.structures import PairBatch, RegistrationOutput
 
 
@@ -37,6 +37,41 @@ def test_composite_rpmnet_outlier_plus_line_loss():
     torch.testing.assert_close(out.terms["line"], line)
     torch.testing.assert_close(out.total, 10.0 * outlier + line)
     assert "line/lines_hit_both" in out.stats
+
+
+def test_nu0_final_anneals_the_welsch_scale_geometrically():
+    line = {"name": "line_intersection", "num_lines": 1000, "seed": 0}
+    annealed = {**line, "nu0": 2.0, "nu0_final": 0.5}
+    loss = build_loss({"terms": {"outlier": {"name": "rpmnet_outlier"}, "line": annealed}})
+    assert loss.parts["line"].options.nu0 == 2.0  # before the first epoch: nu0
+    assert set_training_progress(loss, 0.5) == {"parts.line.nu0": pytest.approx(1.0)}
+    assert set_training_progress(loss, 1.0) == {"parts.line.nu0": pytest.approx(0.5)}
+    # At the end of the schedule the loss is the fixed-scale loss at nu0_final (the same lines).
+    fixed = build_loss({**line, "nu0": 0.5})
+    torch.testing.assert_close(
+        loss.parts["line"](_rpm_output(), _batch(False)).total, fixed(_rpm_output(), _batch(False)).total
+    )
+    assert set_training_progress(fixed, 0.3) == {} and fixed.options.nu0 == 0.5  # unscheduled: untouched
+
+
+@pytest.mark.parametrize(
+    ("options", "message"),
+    [
+        ({"nu0_final": 0.0}, "nu0_final must be a finite number > 0"),
+        ({"nu0_final": float("nan")}, "nu0_final must be a finite number > 0"),
+        ({"nu0_final": True}, "nu0_final must be a finite number > 0"),
+        ({"nu0_final": 0.5, "nu": 0.1}, "set one of them"),
+    ],
+)
+def test_bad_nu0_schedules_are_named(options, message):
+    with pytest.raises(ValueError, match=message):
+        build_loss({"name": "line_intersection", **options})
+
+
+@pytest.mark.parametrize("fraction", [-0.1, 1.5, float("nan")])
+def test_training_progress_outside_zero_one_is_refused(fraction):
+    with pytest.raises(ValueError, match=r"training progress must lie in \[0, 1\]"):
+        set_training_progress(build_loss({"name": "line_intersection", "nu0_final": 0.5}), fraction)
 
 
 def test_a_composite_with_a_supervised_part_needs_gt():

@@ -241,6 +241,13 @@ def test_term_gradient_norms_are_logged_on_logging_steps_without_changing_traini
         torch.testing.assert_close(value, load_checkpoint(plain["last_checkpoint"])["model"][name], rtol=0, atol=0)
 
 
+def test_an_annealed_welsch_scale_moves_before_each_epoch_and_is_logged(tmp_path):
+    _toy_run(tmp_path, "loss.num_lines=400", "loss.nu0=2.0", "loss.nu0_final=0.5")
+    tag = "loss_schedule/parts.alignment.nu0"
+    logged = [record[tag] for record in read_scalars(tmp_path) if tag in record]
+    assert logged == pytest.approx([2.0, 1.0, 0.5])  # debug=tiny: three one-epoch stages
+
+
 def test_a_loss_term_named_total_is_refused_for_gradient_norms(tmp_path, monkeypatch):
     class TotalTerm(Loss):
         def compute(self, output, batch):

@@ -45,7 +45,7 @@ from tqdm.auto import tqdm
 
 from linereg.checkpoint import BEST, CHECKPOINT_DIR, LAST, load_checkpoint
 from linereg.datasets.splits import build_split
-from linereg.losses import build_loss
+from linereg.losses import build_loss, set_training_progress
 from linereg.models import MODELS
 from linereg.registry import plain
 from linereg.structures import LossOutput, PairBatch, RegistrationOutput
@@ -535,6 +535,8 @@ class Trainer:
             index, _ = self.curriculum.locate(self.epoch)
             if index != self.stage_index:
                 self._enter_stage(index)
+            scheduled = set_training_progress(self.loss, self.epoch / max(total - 1, 1))
+            self.logger.scalars({f"loss_schedule/{k}": v for k, v in scheduled.items()}, self.global_step)
             train_means = self._train_epoch()
             if self.scheduler is not None:
                 self.scheduler.step()

@@ -13,7 +13,7 @@ Lucas-Kanade solver (reference-notes §1.3):
    ``g <- exp(dx) g``; it stops early once every sample's ``|dx| < tolerance``;
 4. the centring is undone: ``T = Trans(mean_tgt) g Trans(-mean_src)``.
 
-The features are computed in full float32 on every device: autocast is switched off and cuDNN's
+The features are computed in the model's precision on every device: autocast is switched off, and cuDNN's
 TF32 convolutions (PyTorch's default on Ampere and newer GPUs) too, since their 10-bit mantissa
 swamps the finite differences of step 2 (on an H200, FMR with TF32 drifted from the CPU result by
 up to 0.32 in the transform's entries).
@@ -84,8 +84,8 @@ def _translation(offset: torch.Tensor) -> torch.Tensor:
 
 
 @contextmanager
-def _float32_features(device: torch.device) -> Iterator[None]:
-    """Full float32 inside: no autocast on ``device`` and no TF32 in cuDNN convolutions."""
+def _full_precision_features(device: torch.device) -> Iterator[None]:
+    """The model's own precision inside: no autocast on ``device`` and no TF32 in cuDNN convolutions."""
     cudnn = torch.backends.cudnn
     flags = {
         "enabled": cudnn.enabled,
@@ -206,7 +206,7 @@ class FMR(nn.Module):
 
     def forward(self, batch: PairBatch) -> RegistrationOutput:
         check_pair_batch(batch, "FMR", equal_counts=True, dtype=self.dt.dtype)
-        with _float32_features(batch.src_xyz.device):
+        with _full_precision_features(batch.src_xyz.device):
             return self._register(batch)
 
     def _register(self, batch: PairBatch) -> RegistrationOutput:

@@ -89,10 +89,10 @@ def welsch_scale(distances: torch.Tensor, nu0: float) -> torch.Tensor:
     return nu0 * distances.detach().median()
 
 
-def check_nu0(nu0: float) -> None:
-    """Raise ``ValueError`` unless ``nu0`` is a finite number > 0."""
+def check_nu0(nu0: float, name: str = "nu0") -> None:
+    """Raise ``ValueError`` unless ``nu0`` (a Welsch scale factor called ``name``) is a finite number > 0."""
     if isinstance(nu0, bool) or not isinstance(nu0, numbers.Real) or not (math.isfinite(nu0) and nu0 > 0):
-        raise ValueError(f"nu0 must be a finite number > 0, got {nu0!r}")
+        raise ValueError(f"{name} must be a finite number > 0, got {nu0!r}")
 
 
 def chamfer_welsch_distance(

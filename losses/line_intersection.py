@@ -89,6 +89,7 @@ from linereg.checks import check_lengths, check_points, check_same_batch
 
 from . import line_kernels, line_torch
 from .base import LOSSES, AlignmentLoss
+from .chamfer import check_nu0
 from .line_torch import Hits
 from .lines import SAMPLERS, sample_line_batch
 
@@ -835,10 +836,7 @@ class LineIntersectionLoss(AlignmentLoss):
         if nu0_final is not None:
             if self.options.nu is not None:
                 raise ValueError("nu0_final anneals nu0, which a fixed absolute scale nu overrides: set one of them")
-            if isinstance(nu0_final, bool) or not (
-                isinstance(nu0_final, numbers.Real) and math.isfinite(nu0_final) and nu0_final > 0
-            ):
-                raise ValueError(f"nu0_final must be a finite number > 0 or None, got {nu0_final!r}")
+            check_nu0(nu0_final, "nu0_final")
             nu0_final = float(nu0_final)
         self.nu0_start = self.options.nu0
         self.nu0_final = nu0_final

@@ -83,6 +83,19 @@ def test_fine_tuning_cells_start_from_init_from():
     assert cfg.init_from == "/runs/rpm_gt_s0" and cfg.dataset.name == "rgbd_sequence" and cfg.loss.nu0 == 2.0
 
 
+def test_fine_tuning_cells_exist_for_every_backbone():
+    env = os.environ | {"DRY": "1", "PROTOCOL": "real", "INIT_FROM": "/runs/fmr_gt_s0"}
+    env["CELLS"] = "fmr_pretrained fmr_cd_finetuned fmr_ours_finetuned dcp_ours_nu2_finetuned"
+    result = subprocess.run(["bash", str(SCRIPT)], env=env, capture_output=True, text=True, check=True)
+    runs = {line.split()[0]: line.split()[2:] for line in result.stdout.splitlines()}
+    assert runs["fmr_pretrained"] == [*cell_overrides("real")["fmr_untrained"], "init_from=/runs/fmr_gt_s0"]
+    for cell in ("fmr_cd", "fmr_ours", "dcp_ours_nu2"):
+        assert runs[f"{cell}_finetuned"] == [*cell_overrides("real")[cell], "init_from=/runs/fmr_gt_s0"]
+    env["CELLS"] = "icp_cd_finetuned"
+    result = subprocess.run(["bash", str(SCRIPT)], env=env, capture_output=True, text=True)
+    assert result.returncode == 2 and "unknown cell icp_cd " in result.stderr
+
+
 def test_seeds_repeat_every_cell():
     result = dry_run("procedural", ["dcp_gt", "fmr_cd"], seeds="1 2")
     assert [line.split()[:2] for line in result.stdout.splitlines()] == [

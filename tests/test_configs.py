@@ -73,12 +73,23 @@ def test_default_is_the_label_free_easy_pose_recipe():
 
 @pytest.mark.parametrize("experiment", EXPERIMENTS)
 def test_recipe_cpu_replaces_the_schedule_of_experiments_and_grids(experiment):
-    """The default recipe=cpu (issue #13) wins over the experiment's and the scale's schedule."""
-    for extra in ([], ["reproduce=airplane"], ["reproduce=human"], ["reproduce=real"]):
+    """The default recipe=cpu (issue #13) wins over the experiment's and the scale's schedule; a
+    protocol adapts its stages (``cpu_recipe`` in configs/reproduce/)."""
+    stages = {
+        "": [("easy", 6, "easy")],
+        "airplane": [("easy", 4, "easy")],
+        "human": [("easy", 4, "easy"), ("full", 4, None)],  # then the full pose range
+        "real": [("easy", 8, None)],  # the test pairs' frame gap
+    }
+    for protocol, expected in stages.items():
+        extra = [f"reproduce={protocol}"] if protocol else []
         cfg = compose_config(overrides=[f"experiment={experiment}", *extra])
         curriculum = Curriculum.from_config(cfg.curriculum)
-        assert [(s.name, s.variant, s.subset) for s in curriculum.stages] == [("easy", "easy", None)], extra
-        assert curriculum.stages[0].learning_rate(cfg.optimizer.lr) == pytest.approx(1e-3)
+        assert [(s.name, s.epochs, s.variant) for s in curriculum.stages] == expected, protocol
+        rates = [s.learning_rate(cfg.optimizer.lr) for s in curriculum.stages]
+        assert all(s.subset is None for s in curriculum.stages) and rates == pytest.approx([1e-3] * len(rates))
+        if experiment.endswith("_ours"):
+            assert cfg.loss.terms.alignment.nu0 == (2.0 if protocol == "human" else None)
         assert cfg.scheduler.name == "cosine" and cfg.trainer.evaluate_checkpoint == "last"
         assert cfg.trainer.num_points == 256
         terms = OmegaConf.to_container(cfg.loss, resolve=True)["terms"]
@@ -107,6 +118,9 @@ def test_recipe_paper_keeps_the_experiments_schedule_and_checkpoint(experiment):
         terms = OmegaConf.to_container(cfg.loss, resolve=True)["terms"]
         if "outlier" in terms:
             assert terms["outlier"]["weight"] == 10.0
+    human = compose_config(overrides=[f"experiment={experiment}", "recipe=paper", "reproduce=human"])
+    paper = compose_config(overrides=[f"experiment={experiment}", "recipe=paper"])
+    assert "nu0" not in human.recipe and human.loss.nu0 == paper.loss.nu0  # Human's cpu_recipe stays out
 
 
 @pytest.mark.parametrize("experiment", EXPERIMENTS)

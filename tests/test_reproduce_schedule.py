@@ -7,7 +7,9 @@ import os
 import subprocess
 
 import pytest
+from omegaconf import OmegaConf
 
+from linereg.train.curriculum import Curriculum
 from scripts import reproduce_report
 from tests.test_configs import ROOT, build_components, compose_config
 
@@ -133,3 +135,43 @@ def test_schedule_table(tmp_path, capsys):
     assert [cell.strip() for cell in rows[3]] == ["fmr_ours", "7.00 ± 1.41", "6.00, 8.00", "3.50", "0.70", "0 1", "135"]
     with pytest.raises(SystemExit):
         reproduce_report.main([str(out), "--schedule", "airplane"])
+
+
+# What each protocol's measured cells add to the schedule (docs/results.md, sessions 10-13).
+MEASURED = {
+    "airplane": {"EXTRA": ""},
+    "human": {"EXTRA": "curriculum.stages.full.epochs=4 curriculum.stages.full.lr_scale=1.0 loss.nu0=2.0"},
+    "real": {"EXTRA": "curriculum.stages.easy.variant=null curriculum.stages.easy.epochs=8"},
+}
+SIZES = {"rpm": ["model=rpmnet_cpu"], "dcp": ["model.emb_dims=256", "model.ff_dims=512"], "fmr": []}
+
+
+def _training(cfg) -> dict:
+    """What a run trains with: stages, rates, loss terms, points, batch, checkpoint."""
+    curriculum = Curriculum.from_config(cfg.curriculum)
+    stages = [(s.epochs, s.subset, s.variant, s.learning_rate(cfg.optimizer.lr), s.lr_scale) for s in curriculum.stages]
+    return {
+        "stages": stages,
+        "optimizer": OmegaConf.to_container(cfg.optimizer, resolve=True),
+        "scheduler": OmegaConf.to_container(cfg.scheduler, resolve=True),
+        "loss": OmegaConf.to_container(cfg.loss.terms, resolve=True),
+        "model": OmegaConf.to_container(cfg.model, resolve=True),
+        "dataset": OmegaConf.to_container(cfg.dataset, resolve=True),
+        "trainer": {key: cfg.trainer[key] for key in ("num_points", "batch_size", "evaluate_checkpoint")},
+    }
+
+
+@pytest.mark.parametrize("protocol", list(MEASURED))
+@pytest.mark.parametrize("cell", ["rpm_gt", "rpm_cd", "rpm_ours", "dcp_cd", "dcp_ours", "fmr_gt", "fmr_cd", "fmr_ours"])
+def test_experiment_under_the_recipe_trains_the_measured_cell(protocol, cell):
+    """Issue #13 item 5: `python -m train experiment=<cell> reproduce=<protocol>` (the default
+    recipe=cpu, at the grid's backbone sizes) trains what the schedule's cell measured."""
+    backbone, loss = cell.split("_", 1)
+    extra = MEASURED[protocol]["EXTRA"]
+    if loss != "ours":  # the Welsch scale is the line loss's alone
+        extra = extra.replace("loss.nu0=2.0", "").strip()
+    env = os.environ | {"DRY": "1", "PROTOCOL": protocol, "CELLS": cell, "RPM_OUTLIER_WEIGHT": "0.3", "EXTRA": extra}
+    result = subprocess.run(["bash", str(SCRIPT)], env=env, capture_output=True, text=True, check=True)
+    schedule = compose_config(overrides=result.stdout.split()[2:])
+    experiment = compose_config(overrides=[f"experiment={cell}", f"reproduce={protocol}", *SIZES[backbone]])
+    assert _training(experiment) == _training(schedule)

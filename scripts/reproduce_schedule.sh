@@ -10,6 +10,7 @@
 #   PROTOCOL=airplane CELLS="rpm_gt rpm_cd rpm_ours rpm_untrained" scripts/reproduce_schedule.sh
 #   DRY=1 CELLS=... scripts/reproduce_schedule.sh      # print each run's overrides, run nothing
 #   RPM_OUTLIER_WEIGHT=0.3 OUT=outputs/schedule_w03 CELLS="rpm_cd rpm_ours" scripts/reproduce_schedule.sh
+#   NUM_LINES=20000 OUT=outputs/schedule_l20k CELLS="dcp_cd dcp_ours" scripts/reproduce_schedule.sh
 #   EXTRA="loss.nu0=1.0" OUT=outputs/schedule_nu1 CELLS=rpm_ours scripts/reproduce_schedule.sh
 #
 # PROTOCOL: procedural (the embedded pairs, no download), airplane or human (configs/reproduce/,
@@ -21,7 +22,8 @@
 # loss), so fmr_reg only differs from it by the term's weight (0.001, as in FMR-Ours).
 # Finished cells (metrics.json present) are skipped; an interrupted one resumes from its last
 # checkpoint. RPM_OUTLIER_WEIGHT (default 1) is RPM-Net's outlier weight in every unsupervised
-# RPM-Net cell; EXTRA holds overrides added to every cell (give such a study its own OUT).
+# RPM-Net cell; NUM_LINES (default 5000) the lines per pair of every line-loss cell; EXTRA holds
+# overrides added to every cell (give such a study its own OUT).
 # Runs land in $OUT/$PROTOCOL (default outputs/schedule); each run uses one thread,
 # so two can share a 2-core machine; $dir.cpu records each attempt's user and system CPU seconds.
 set -euo pipefail
@@ -34,6 +36,7 @@ CELLS=${CELLS:-rpm_untrained rpm_reg rpm_gt rpm_cd rpm_ours rpm_ours_quick}
 DRY=${DRY:-0}
 INIT_FROM=${INIT_FROM:-}
 RPM_OUTLIER_WEIGHT=${RPM_OUTLIER_WEIGHT:-1}
+NUM_LINES=${NUM_LINES:-5000}
 read -r -a EXTRA <<< "${EXTRA:-}"
 export OMP_NUM_THREADS=${OMP_NUM_THREADS:-1}
 
@@ -57,7 +60,7 @@ DCP=(model=dcp_v2 model.emb_dims=256 model.ff_dims=512)
 FMR=(model=fmr)
 UNSUPERVISED_RPM=("loss.terms.outlier.weight=$RPM_OUTLIER_WEIGHT")
 # The paper's line loss with 5000 lines (the embedded default's loss when this study was run).
-LINES=(loss.num_lines=5000)
+LINES=("loss.num_lines=$NUM_LINES")
 NU2=(loss.nu0=2.0)
 
 overrides() {

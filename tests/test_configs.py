@@ -96,7 +96,7 @@ def test_recipe_cpu_replaces_the_schedule_of_experiments_and_grids(experiment):
         if "outlier" in terms:
             assert terms["outlier"]["weight"] == 0.3
         if terms.get("alignment", {}).get("name") == "line_intersection":
-            assert terms["alignment"]["num_lines"] == 5000
+            assert terms["alignment"]["num_lines"] == (20000 if protocol == "human" else 5000)
         build_components(cfg)
 
 
@@ -121,6 +121,8 @@ def test_recipe_paper_keeps_the_experiments_schedule_and_checkpoint(experiment):
     human = compose_config(overrides=[f"experiment={experiment}", "recipe=paper", "reproduce=human"])
     paper = compose_config(overrides=[f"experiment={experiment}", "recipe=paper"])
     assert "nu0" not in human.recipe and human.loss.nu0 == paper.loss.nu0  # Human's cpu_recipe stays out
+    if experiment.endswith("_ours"):
+        assert human.loss.num_lines == paper.loss.num_lines != 20000
 
 
 @pytest.mark.parametrize("experiment", EXPERIMENTS)

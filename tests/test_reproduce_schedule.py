@@ -98,6 +98,16 @@ def test_fine_tuning_cells_exist_for_every_backbone():
     assert result.returncode == 2 and "unknown cell icp_cd " in result.stderr
 
 
+def test_num_lines_reaches_every_line_loss_cell_only():
+    env = os.environ | {"DRY": "1", "PROTOCOL": "procedural", "NUM_LINES": "20000"}
+    env["CELLS"] = "dcp_reg dcp_cd dcp_ours fmr_ours_nu2"
+    result = subprocess.run(["bash", str(SCRIPT)], env=env, capture_output=True, text=True, check=True)
+    runs = {line.split()[0]: compose_config(overrides=line.split()[2:]) for line in result.stdout.splitlines()}
+    lines = [runs[cell].loss.terms.alignment.num_lines for cell in ("dcp_reg", "dcp_ours", "fmr_ours_nu2")]
+    assert lines == [20000] * 3
+    assert runs["dcp_cd"].loss.terms.alignment.name == "chamfer"
+
+
 def test_seeds_repeat_every_cell():
     result = dry_run("procedural", ["dcp_gt", "fmr_cd"], seeds="1 2")
     assert [line.split()[:2] for line in result.stdout.splitlines()] == [
@@ -137,12 +147,12 @@ def test_schedule_table(tmp_path, capsys):
         reproduce_report.main([str(out), "--schedule", "airplane"])
 
 
-# What each protocol's measured cells add to the schedule (docs/results.md, sessions 10-13); on
-# Human the measured line-loss cells are the `_nu2` ones.
-MEASURED_EXTRA = {
-    "airplane": "",
-    "human": "curriculum.stages.full.epochs=4 curriculum.stages.full.lr_scale=1.0",
-    "real": "curriculum.stages.easy.variant=null curriculum.stages.easy.epochs=8",
+# What each protocol's measured cells add to the schedule's environment (docs/results.md,
+# sessions 10-14); on Human the measured line-loss cells are the `_nu2` ones.
+MEASURED_ENV = {
+    "airplane": {"EXTRA": ""},
+    "human": {"EXTRA": "curriculum.stages.full.epochs=4 curriculum.stages.full.lr_scale=1.0", "NUM_LINES": "20000"},
+    "real": {"EXTRA": "curriculum.stages.easy.variant=null curriculum.stages.easy.epochs=8"},
 }
 SIZES = {"rpm": ["model=rpmnet_cpu"], "dcp": ["model.emb_dims=256", "model.ff_dims=512"], "fmr": []}
 
@@ -162,14 +172,14 @@ def _training(cfg) -> dict:
     }
 
 
-@pytest.mark.parametrize("protocol", list(MEASURED_EXTRA))
+@pytest.mark.parametrize("protocol", list(MEASURED_ENV))
 @pytest.mark.parametrize("cell", ["rpm_gt", "rpm_cd", "rpm_ours", "dcp_cd", "dcp_ours", "fmr_gt", "fmr_cd", "fmr_ours"])
 def test_experiment_under_the_recipe_trains_the_measured_cell(protocol, cell):
     """Issue #13 item 5: `python -m train experiment=<cell> reproduce=<protocol>` (the default
     recipe=cpu, at the grid's backbone sizes) trains what the schedule's cell measured."""
     measured_cell = f"{cell}_nu2" if protocol == "human" and cell.endswith("_ours") else cell
     env = os.environ | {"DRY": "1", "PROTOCOL": protocol, "CELLS": measured_cell, "RPM_OUTLIER_WEIGHT": "0.3"}
-    env["EXTRA"] = MEASURED_EXTRA[protocol]
+    env |= MEASURED_ENV[protocol]
     result = subprocess.run(["bash", str(SCRIPT)], env=env, capture_output=True, text=True, check=True)
     schedule = compose_config(overrides=result.stdout.split()[2:])
     experiment = compose_config(overrides=[f"experiment={cell}", f"reproduce={protocol}", *SIZES[cell.split("_")[0]]])

@@ -75,8 +75,8 @@ SCALE = (1.0, 10.0, 10.0, 10.0, 10.0)  # the paper prints Err_t and Err_pw x 10^
 IDENTITY = "identity"
 # Control cells: the untrained network and its unsupervised regulariser alone (alignment weight 0).
 CONTROLS = ("untrained", "reg")
-# A supervised model evaluated as it is on Real, and fine-tuned there without labels.
-FINE_TUNED = ("cd_finetuned", "ours_finetuned", "ours_nu2_finetuned")
+# A supervised model evaluated as it is on Real, fine-tuned there without labels, and with them.
+FINE_TUNED = ("cd_finetuned", "ours_finetuned", "ours_nu2_finetuned", "oracle_finetuned")
 ROW_ORDER = (
     [IDENTITY, "icp_point", "icp_plane", "fricp", "fgr"]
     + [f"{b}_{loss}" for b in ("dcp", "fmr", "rpm") for loss in (*CONTROLS, "gt", "cd", "ours", "ours_nu2")]

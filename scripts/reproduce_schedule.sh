@@ -17,9 +17,11 @@
 # the shared data). Cells are <backbone>_<loss> for rpm, dcp and fmr: untrained, reg, gt, cd,
 # ours (and rpm_ours_quick); <backbone>_ours_nu2 is the line loss with the Welsch scale factor
 # nu0 = 2 instead of the paper's 0.5 (issue #13). With INIT_FROM=<run of a supervised model of
-# backbone b>, b_pretrained evaluates that model as it is, and b_<cd|ours|ours_nu2>_finetuned
-# fine-tune it without labels (the Real protocol's fine-tuning study). FMR-CD is FMR's reconstruction term alone (its own unsupervised
-# loss), so fmr_reg only differs from it by the term's weight (0.001, as in FMR-Ours).
+# backbone b>, b_pretrained evaluates that model as it is, b_<cd|ours|ours_nu2>_finetuned
+# fine-tune it without labels (the Real protocol's fine-tuning study), and b_oracle_finetuned
+# fine-tunes it with the labels and b's supervised loss (what fine-tuning can reach at best).
+# FMR-CD is FMR's reconstruction term alone (its own unsupervised loss), so fmr_reg only differs
+# from it by the term's weight (0.001, as in FMR-Ours).
 # Finished cells (metrics.json present) are skipped; an interrupted one resumes from its last
 # checkpoint. RPM_OUTLIER_WEIGHT (default 1) is RPM-Net's outlier weight in every unsupervised
 # RPM-Net cell; NUM_LINES (default 5000) the lines per pair of every line-loss cell; EXTRA holds
@@ -71,10 +73,12 @@ overrides() {
     rpm_cd) echo "${RPM[*]} loss=rpm_cd ${UNSUPERVISED_RPM[*]} ${EASY_ALL[*]}" ;;
     rpm_ours) echo "${RPM[*]} loss=rpm_ours ${LINES[*]} ${UNSUPERVISED_RPM[*]} ${EASY_ALL[*]}" ;;
     rpm_ours_nu2 | dcp_ours_nu2 | fmr_ours_nu2) echo "$(overrides "${1%_nu2}") ${NU2[*]}" ;;
-    rpm_pretrained | dcp_pretrained | fmr_pretrained | *_cd_finetuned | *_ours_finetuned | *_ours_nu2_finetuned)
+    rpm_pretrained | dcp_pretrained | fmr_pretrained | *_cd_finetuned | *_ours_finetuned | *_ours_nu2_finetuned | \
+      *_oracle_finetuned)
       [[ -n $INIT_FROM ]] || { echo "cell $1 needs INIT_FROM=<run of a supervised model>" >&2; return 2; }
       local base=${1%_finetuned} args
       [[ $1 == *_pretrained ]] && base=${1%_pretrained}_untrained
+      [[ $1 == *_oracle_finetuned ]] && base=${1%_oracle_finetuned}_gt
       args=$(overrides "$base") || return 2
       echo "$args init_from=$INIT_FROM" ;;
     rpm_ours_quick) echo "${RPM[*]} loss=rpm_ours ${LINES[*]} ${UNSUPERVISED_RPM[*]}" ;;  # the quick 3-stage curriculum
@@ -88,7 +92,7 @@ overrides() {
     fmr_gt) echo "${FMR[*]} loss=fmr_gt ${EASY_ALL[*]}" ;;
     fmr_cd) echo "${FMR[*]} loss=fmr_cd ${EASY_ALL[*]}" ;;
     fmr_ours) echo "${FMR[*]} loss=fmr_ours ${LINES[*]} ${EASY_ALL[*]}" ;;
-    *) echo "unknown cell $1 (<rpm|dcp|fmr>_<untrained|reg|gt|cd|ours|ours_nu2>, rpm_ours_quick, <rpm|dcp|fmr>_pretrained, <rpm|dcp|fmr>_<cd|ours|ours_nu2>_finetuned)" >&2; return 2 ;;
+    *) echo "unknown cell $1 (<rpm|dcp|fmr>_<untrained|reg|gt|cd|ours|ours_nu2>, rpm_ours_quick, <rpm|dcp|fmr>_pretrained, <rpm|dcp|fmr>_<cd|ours|ours_nu2|oracle>_finetuned)" >&2; return 2 ;;
   esac
 }
 

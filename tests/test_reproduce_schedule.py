@@ -93,6 +93,11 @@ def test_fine_tuning_cells_exist_for_every_backbone():
     assert runs["fmr_pretrained"] == [*cell_overrides("real")["fmr_untrained"], "init_from=/runs/fmr_gt_s0"]
     for cell in ("fmr_cd", "fmr_ours", "dcp_ours_nu2"):
         assert runs[f"{cell}_finetuned"] == [*cell_overrides("real")[cell], "init_from=/runs/fmr_gt_s0"]
+    env["CELLS"] = "rpm_oracle_finetuned"
+    result = subprocess.run(["bash", str(SCRIPT)], env=env, capture_output=True, text=True, check=True)
+    oracle = result.stdout.split()
+    assert oracle[2:] == [*cell_overrides("real")["rpm_gt"], "init_from=/runs/fmr_gt_s0"]
+    assert "registration" in compose_config(overrides=oracle[2:]).loss.terms  # the supervised loss
     env["CELLS"] = "icp_cd_finetuned"
     result = subprocess.run(["bash", str(SCRIPT)], env=env, capture_output=True, text=True)
     assert result.returncode == 2 and "unknown cell icp_cd " in result.stderr

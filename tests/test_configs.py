@@ -79,7 +79,7 @@ def test_recipe_cpu_replaces_the_schedule_of_experiments_and_grids(experiment):
         "": [("easy", 6, "easy")],
         "airplane": [("easy", 4, "easy")],
         "human": [("easy", 4, "easy"), ("full", 4, None)],  # then the full pose range
-        "real": [("easy", 8, None)],  # the test pairs' frame gap
+        "real": [("easy", 4, "easy"), ("full", 4, None)],  # then the test pairs' frame gap
     }
     for protocol, expected in stages.items():
         extra = [f"reproduce={protocol}"] if protocol else []

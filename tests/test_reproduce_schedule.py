@@ -157,7 +157,7 @@ def test_schedule_table(tmp_path, capsys):
 MEASURED_ENV = {
     "airplane": {"EXTRA": ""},
     "human": {"EXTRA": "curriculum.stages.full.epochs=4 curriculum.stages.full.lr_scale=1.0", "NUM_LINES": "20000"},
-    "real": {"EXTRA": "curriculum.stages.easy.variant=null curriculum.stages.easy.epochs=8"},
+    "real": {"EXTRA": "curriculum.stages.full.epochs=4 curriculum.stages.full.lr_scale=1.0"},
 }
 SIZES = {"rpm": ["model=rpmnet_cpu"], "dcp": ["model.emb_dims=256", "model.ff_dims=512"], "fmr": []}
 

@@ -19,7 +19,7 @@
 # nu0 = 2 instead of the paper's 0.5 (issue #13). With INIT_FROM=<run of a supervised model of
 # backbone b>, b_pretrained evaluates that model as it is, b_<cd|ours|ours_nu2>_finetuned
 # fine-tune it without labels (the Real protocol's fine-tuning study), and b_oracle_finetuned
-# fine-tunes it with the labels and b's supervised loss (what fine-tuning can reach at best).
+# fine-tunes it with the labels and b's supervised loss (the reference for the label-free cells).
 # FMR-CD is FMR's reconstruction term alone (its own unsupervised loss), so fmr_reg only differs
 # from it by the term's weight (0.001, as in FMR-Ours).
 # Finished cells (metrics.json present) are skipped; an interrupted one resumes from its last
@@ -61,7 +61,7 @@ RPM=(model=rpmnet_cpu)
 DCP=(model=dcp_v2 model.emb_dims=256 model.ff_dims=512)
 FMR=(model=fmr)
 UNSUPERVISED_RPM=("loss.terms.outlier.weight=$RPM_OUTLIER_WEIGHT")
-# The paper's line loss with 5000 lines (the embedded default's loss when this study was run).
+# The paper's line loss with NUM_LINES lines (5000: the embedded default's when this study began).
 LINES=("loss.num_lines=$NUM_LINES")
 NU2=(loss.nu0=2.0)
 

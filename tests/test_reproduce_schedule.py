@@ -20,8 +20,9 @@ CELLS = [f"{b}_{loss}" for b in BACKBONES for loss in LOSSES] + ["rpm_ours_quick
 DATASETS = {"procedural": "procedural", "airplane": "modelnet40", "human": "mesh_folder", "real": "rgbd_sequence"}
 
 
-def dry_run(protocol: str, cells: list[str], seeds: str = "0") -> subprocess.CompletedProcess:
-    env = os.environ | {"DRY": "1", "PROTOCOL": protocol, "CELLS": " ".join(cells), "SEEDS": seeds}
+def dry_run(protocol: str, cells: list[str], seeds: str = "0", **env: str) -> subprocess.CompletedProcess:
+    """The script's DRY=1 output for ``cells``; ``env`` adds its other variables (EXTRA, NUM_LINES, ...)."""
+    env = os.environ | env | {"DRY": "1", "PROTOCOL": protocol, "CELLS": " ".join(cells), "SEEDS": seeds}
     return subprocess.run(["bash", str(SCRIPT)], env=env, capture_output=True, text=True, check=False)
 
 
@@ -86,27 +87,24 @@ def test_fine_tuning_cells_start_from_init_from():
 
 
 def test_fine_tuning_cells_exist_for_every_backbone():
-    env = os.environ | {"DRY": "1", "PROTOCOL": "real", "INIT_FROM": "/runs/fmr_gt_s0"}
-    env["CELLS"] = "fmr_pretrained fmr_cd_finetuned fmr_ours_finetuned dcp_ours_nu2_finetuned"
-    result = subprocess.run(["bash", str(SCRIPT)], env=env, capture_output=True, text=True, check=True)
+    cells = ["fmr_pretrained", "fmr_cd_finetuned", "fmr_ours_finetuned", "dcp_ours_nu2_finetuned"]
+    cells.append("rpm_oracle_finetuned")
+    result = dry_run("real", cells, INIT_FROM="/runs/fmr_gt_s0")
+    assert result.returncode == 0, result.stderr
     runs = {line.split()[0]: line.split()[2:] for line in result.stdout.splitlines()}
-    assert runs["fmr_pretrained"] == [*cell_overrides("real")["fmr_untrained"], "init_from=/runs/fmr_gt_s0"]
+    real = cell_overrides("real")
+    assert runs["fmr_pretrained"] == [*real["fmr_untrained"], "init_from=/runs/fmr_gt_s0"]
     for cell in ("fmr_cd", "fmr_ours", "dcp_ours_nu2"):
-        assert runs[f"{cell}_finetuned"] == [*cell_overrides("real")[cell], "init_from=/runs/fmr_gt_s0"]
-    env["CELLS"] = "rpm_oracle_finetuned"
-    result = subprocess.run(["bash", str(SCRIPT)], env=env, capture_output=True, text=True, check=True)
-    oracle = result.stdout.split()
-    assert oracle[2:] == [*cell_overrides("real")["rpm_gt"], "init_from=/runs/fmr_gt_s0"]
-    assert "registration" in compose_config(overrides=oracle[2:]).loss.terms  # the supervised loss
-    env["CELLS"] = "icp_cd_finetuned"
-    result = subprocess.run(["bash", str(SCRIPT)], env=env, capture_output=True, text=True)
+        assert runs[f"{cell}_finetuned"] == [*real[cell], "init_from=/runs/fmr_gt_s0"]
+    assert runs["rpm_oracle_finetuned"] == [*real["rpm_gt"], "init_from=/runs/fmr_gt_s0"]
+    assert "registration" in compose_config(overrides=runs["rpm_oracle_finetuned"]).loss.terms  # supervised
+    result = dry_run("real", ["icp_cd_finetuned"], INIT_FROM="/runs/fmr_gt_s0")
     assert result.returncode == 2 and "unknown cell icp_cd " in result.stderr
 
 
 def test_num_lines_reaches_every_line_loss_cell_only():
-    env = os.environ | {"DRY": "1", "PROTOCOL": "procedural", "NUM_LINES": "20000"}
-    env["CELLS"] = "dcp_reg dcp_cd dcp_ours fmr_ours_nu2"
-    result = subprocess.run(["bash", str(SCRIPT)], env=env, capture_output=True, text=True, check=True)
+    result = dry_run("procedural", ["dcp_reg", "dcp_cd", "dcp_ours", "fmr_ours_nu2"], NUM_LINES="20000")
+    assert result.returncode == 0, result.stderr
     runs = {line.split()[0]: compose_config(overrides=line.split()[2:]) for line in result.stdout.splitlines()}
     lines = [runs[cell].loss.terms.alignment.num_lines for cell in ("dcp_reg", "dcp_ours", "fmr_ours_nu2")]
     assert lines == [20000] * 3
@@ -183,9 +181,8 @@ def test_experiment_under_the_recipe_trains_the_measured_cell(protocol, cell):
     """Issue #13 item 5: `python -m train experiment=<cell> reproduce=<protocol>` (the default
     recipe=cpu, at the grid's backbone sizes) trains what the schedule's cell measured."""
     measured_cell = f"{cell}_nu2" if protocol == "human" and cell.endswith("_ours") else cell
-    env = os.environ | {"DRY": "1", "PROTOCOL": protocol, "CELLS": measured_cell, "RPM_OUTLIER_WEIGHT": "0.3"}
-    env |= MEASURED_ENV[protocol]
-    result = subprocess.run(["bash", str(SCRIPT)], env=env, capture_output=True, text=True, check=True)
+    result = dry_run(protocol, [measured_cell], RPM_OUTLIER_WEIGHT="0.3", **MEASURED_ENV[protocol])
+    assert result.returncode == 0, result.stderr
     schedule = compose_config(overrides=result.stdout.split()[2:])
     experiment = compose_config(overrides=[f"experiment={cell}", f"reproduce={protocol}", *SIZES[cell.split("_")[0]]])
     assert _training(experiment) == _training(schedule)

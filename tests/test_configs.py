@@ -100,6 +100,15 @@ def test_recipe_cpu_replaces_the_schedule_of_experiments_and_grids(experiment):
         build_components(cfg)
 
 
+@pytest.mark.parametrize("protocol", ["", "human", "real"])
+def test_optimizer_lr_sets_every_stage_of_the_recipe(protocol):
+    """``optimizer.lr=1e-4`` (fine-tuning a trained model, docs/results.md) reaches both stages."""
+    extra = [f"reproduce={protocol}"] if protocol else []
+    cfg = compose_config(overrides=["experiment=rpm_ours", *extra, "optimizer.lr=1e-4"])
+    rates = [s.learning_rate(cfg.optimizer.lr) for s in Curriculum.from_config(cfg.curriculum).stages]
+    assert rates == pytest.approx([1e-4] * (1 if not protocol else 2))
+
+
 def test_recipe_values_are_overridable_and_reach_every_unsupervised_rpm_loss():
     """``recipe.<key>=...`` changes the loss of every cell alike (fair comparisons, issue #13)."""
     for experiment in ("rpm_ours", "rpm_cd", "rpm_cdw"):

@@ -132,18 +132,20 @@ def test_fine_tuning_on_unlabelled_pairs_under_the_recipe(tmp_path):
     """The README's fine-tuning command: the recipe's stage on the pairs as they are, at ``optimizer.lr``."""
     data = tmp_path / "pairs"
     _unlabelled_pairs(data)
-    small = [*SMALL_RUN[:-2], "loss.num_lines=300", "dataset=pairs_folder", f"dataset.root={data}"]
-    small += ["dataset.splits.val={}", "curriculum.stages.easy.epochs=1", "curriculum.stages.easy.variant=null"]
+    recipe_stages = [o for o in SMALL_RUN if not o.startswith("curriculum")]  # keep the recipe's curriculum
+    small = [*recipe_stages, "loss.num_lines=300", "dataset=pairs_folder", f"dataset.root={data}"]
+    small += ["dataset.splits.val={}", "curriculum.stages.easy.epochs=1"]
+    as_they_are = "curriculum.stages.easy.variant=null"
     with pytest.warns(UserWarning, match="selecting the best checkpoint"):
-        loop.train(tiny_config(tmp_path / "first", "experiment=rpm_ours", *small, debug=None))
-    tuning = ["experiment=rpm_ours", *small, f"init_from={tmp_path / 'first'}", "optimizer.lr=1e-4"]
+        loop.train(tiny_config(tmp_path / "first", "experiment=rpm_ours", *small, as_they_are, debug=None))
+    tuning = ["experiment=rpm_ours", *small, as_they_are, f"init_from={tmp_path / 'first'}", "optimizer.lr=1e-4"]
     cfg = tiny_config(tmp_path / "tuned", *tuning, debug=None)
     with pytest.warns(UserWarning, match="selecting the best checkpoint"):
         loop.train(cfg)
     optimizer = load_checkpoint(tmp_path / "tuned" / "checkpoints" / "last.pt")["optimizer"]
     assert optimizer["param_groups"][0]["initial_lr"] == pytest.approx(1e-4)  # the cosine decay starts there
     with pytest.raises(ValueError, match="has no variant 'easy'"):  # the recipe's easy poses need a variant
-        loop.train(tiny_config(tmp_path / "no_variant", "experiment=rpm_ours", *small[:-1], debug=None))
+        loop.train(tiny_config(tmp_path / "no_variant", "experiment=rpm_ours", *small, debug=None))
 
 
 def test_supervised_loss_on_unlabelled_data_is_refused(tmp_path):

@@ -121,6 +121,21 @@ def test_loss_at_gt_script_counts_pairs_per_loss(trained_run, capsys):
     assert len(rows) == 4 and rows[2].startswith("| chamfer (CD) |")
 
 
+def test_check_iterations_script_rows_per_iteration_and_per_score(trained_run, capsys):
+    from scripts import check_iterations
+
+    run_dir, _ = trained_run
+    assert check_iterations.main([str(run_dir), "--iterations", "3", "--lines", "300", "--draws", "0", "1"]) == 0
+    out = capsys.readouterr().out
+    assert out.startswith("4 test pairs of")  # 2 pairs, 2 draws
+    rows = [line.split(" | ") for line in out.splitlines() if line.startswith("| ") and "---" not in line]
+    per_iteration = {row[0]: float(row[1]) for row in rows if "every pair" in row[0]}
+    assert len(per_iteration) == 3 and len(rows) == 3 + 1 + 4  # header, 3 iterations, the bound and 3 scores
+    bound = float(next(row[1] for row in rows if "a bound" in row[0]))
+    assert bound <= min(per_iteration.values()) + 1e-9
+    assert all(bound <= float(row[1]) + 1e-9 for row in rows if row[0].startswith("| lowest"))
+
+
 def test_report_of_unlabelled_data():
     text = report("model", Evaluation(num_pairs=3, losses={"loss": 0.25}), [0.1])
     assert text == "3 pairs without ground truth: no registration errors; mean loss 0.25."

@@ -1,0 +1,102 @@
+"""How RPM-Net's error moves over its iterations, and whether a label-free score picks a better one.
+
+    python scripts/check_iterations.py <run>                          # an RPM-Net run's test pairs
+    python scripts/check_iterations.py <run> --iterations 10 --draws 0 1 2 3
+
+RPM-Net refines its estimate ``test_iters`` times (5, the original's setting). On the pairs of
+the run's split, for each of ``--draws`` (``dataset.seed``: other point samples of the same
+pairs; default: the run's own draw), it prints the mean Err_R after each iteration, then the mean
+Err_R when every pair keeps the iterate with the lowest value of a label-free score (Chamfer, the
+line metric with a fixed Welsch scale, the paper's line metric) and, as a bound that needs the
+labels, the iterate with the lowest Err_R.
+"""
+
+from __future__ import annotations
+
+import argparse
+import copy
+import sys
+from pathlib import Path
+
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+
+from linereg.checkpoint import find_checkpoint, load_checkpoint
+from linereg.datasets import collate_pairs
+from linereg.datasets.benchmark_pairs import labelled_pairs
+from linereg.datasets.splits import build_split
+from linereg.losses import build_loss
+from linereg.metrics import registration_errors
+from linereg.models import MODELS
+from linereg.se3 import transform_points
+
+
+def label_free_scores(lines: int, fixed_nu: float) -> dict[str, object]:
+    """The losses whose value ranks a pair's iterates (built from the loss registry)."""
+    return {
+        "chamfer (CD)": build_loss({"name": "chamfer"}),
+        f"line metric, fixed nu = {fixed_nu:g}": build_loss(
+            {"name": "line_intersection", "num_lines": lines, "nu": fixed_nu, "seed": 0}
+        ),
+        "line metric (paper: nu = nu0 * median)": build_loss(
+            {"name": "line_intersection", "num_lines": lines, "seed": 0}
+        ),
+    }
+
+
+def iterate_errors(model: torch.nn.Module, config: dict, split: str, draw: int | None, scores: dict) -> dict:
+    """Per-iteration Err_R ``(I, B)`` and each score ``(I, B)`` on one draw of the split's pairs."""
+    dataset = copy.deepcopy(config["dataset"])
+    if draw is not None:
+        dataset["seed"] = draw
+    built = build_split(dataset, split, progress=False)
+    if built is None:
+        raise SystemExit(f"the run's dataset has no {split!r} split")
+    batch = collate_pairs(labelled_pairs([built[i] for i in range(len(built))], f"{split!r} split"))
+    with torch.no_grad():
+        transforms = [T.double() for T in model(batch).transforms]
+    src, tgt, gt = batch.src_xyz.double(), batch.tgt_xyz.double(), batch.gt_transform.double()
+    values = {"Err_R": torch.stack([registration_errors(T, gt, src)["err_r_deg"] for T in transforms])}
+    for name, loss in scores.items():
+        values[name] = torch.stack([loss.metric(transform_points(T, src), tgt)[0].reshape(-1) for T in transforms])
+    return values
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("run", help="an RPM-Net training run folder or checkpoint")
+    parser.add_argument("--split", default="test")
+    parser.add_argument("--iterations", type=int, default=None, help="test iterations (default: the run's)")
+    parser.add_argument("--draws", type=int, nargs="+", default=[None], help="dataset.seed values (default: the run's)")
+    parser.add_argument("--lines", type=int, default=5000)
+    parser.add_argument("--fixed-nu", type=float, default=0.25, help="Welsch scale of the fixed-scale row")
+    parser.add_argument("--threads", type=int, default=1)
+    args = parser.parse_args(argv)
+    torch.set_num_threads(args.threads)
+    state = load_checkpoint(find_checkpoint(args.run))
+    config = copy.deepcopy(state["config"])
+    if config["model"]["name"] != "rpmnet":
+        raise SystemExit(f"{args.run}: an RPM-Net run is needed, got model {config['model']['name']!r}")
+    if args.iterations is not None:
+        config["model"]["test_iters"] = args.iterations
+    model = MODELS.build(config["model"])
+    model.load_state_dict(state["model"])
+    model.eval()
+    scores = label_free_scores(args.lines, args.fixed_nu)
+    draws = [iterate_errors(model, config, args.split, draw, scores) for draw in args.draws]
+    errors = torch.cat([d["Err_R"] for d in draws], dim=1)  # (I, pairs over all draws)
+    print(f"{errors.shape[1]} {args.split} pairs of {args.run} over draws {args.draws}\n")
+    print("| estimate | Err_R mean (deg) | mean iteration kept |\n|---|---:|---:|")
+    for k in range(errors.shape[0]):
+        print(f"| iteration {k + 1}, every pair | {errors[k].mean():.3f} | {k + 1} |")
+    for name in ["Err_R", *scores]:
+        kept = torch.cat([d[name].argmin(0) for d in draws])
+        label = "lowest Err_R per pair (uses the labels: a bound)" if name == "Err_R" else f"lowest {name} per pair"
+        chosen = errors.gather(0, kept[None])[0]
+        print(f"| {label} | {chosen.mean():.3f} | {kept.double().mean() + 1:.2f} |")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -85,6 +85,8 @@ def test_recipe_cpu_replaces_the_schedule_of_experiments_and_grids(experiment):
         extra = [f"reproduce={protocol}"] if protocol else []
         cfg = compose_config(overrides=[f"experiment={experiment}", *extra])
         curriculum = Curriculum.from_config(cfg.curriculum)
+        if experiment.startswith("dcp") and protocol == "airplane":
+            expected = [("easy", 4, "easy"), ("full", 4, None)]  # DCP's own block, cpu_recipe.dcp_v2
         assert [(s.name, s.epochs, s.variant) for s in curriculum.stages] == expected, protocol
         rates = [s.learning_rate(cfg.optimizer.lr) for s in curriculum.stages]
         assert all(s.subset is None for s in curriculum.stages) and rates == pytest.approx([1e-3] * len(rates))
@@ -96,7 +98,8 @@ def test_recipe_cpu_replaces_the_schedule_of_experiments_and_grids(experiment):
         if "outlier" in terms:
             assert terms["outlier"]["weight"] == 0.3
         if terms.get("alignment", {}).get("name") == "line_intersection":
-            assert terms["alignment"]["num_lines"] == (20000 if protocol == "human" else 5000)
+            many = protocol == "human" or (protocol, experiment) == ("airplane", "dcp_ours")
+            assert terms["alignment"]["num_lines"] == (20000 if many else 5000)
         build_components(cfg)
 
 
@@ -130,8 +133,11 @@ def test_recipe_paper_keeps_the_experiments_schedule_and_checkpoint(experiment):
     human = compose_config(overrides=[f"experiment={experiment}", "recipe=paper", "reproduce=human"])
     paper = compose_config(overrides=[f"experiment={experiment}", "recipe=paper"])
     assert "nu0" not in human.recipe and human.loss.nu0 == paper.loss.nu0  # Human's cpu_recipe stays out
+    airplane = compose_config(overrides=[f"experiment={experiment}", "recipe=paper", "reproduce=airplane"])
+    grid = compose_config(overrides=["experiment=rpm_gt", "recipe=paper", "reproduce=airplane"])  # no block of its own
+    assert Curriculum.from_config(airplane.curriculum).stages == Curriculum.from_config(grid.curriculum).stages
     if experiment.endswith("_ours"):
-        assert human.loss.num_lines == paper.loss.num_lines != 20000
+        assert human.loss.num_lines == airplane.loss.num_lines == paper.loss.num_lines != 20000
 
 
 @pytest.mark.parametrize("experiment", EXPERIMENTS)

@@ -157,6 +157,10 @@ MEASURED_ENV = {
     "human": {"EXTRA": "curriculum.stages.full.epochs=4 curriculum.stages.full.lr_scale=1.0", "NUM_LINES": "20000"},
     "real": {"EXTRA": "curriculum.stages.full.epochs=4 curriculum.stages.full.lr_scale=1.0"},
 }
+# A backbone's own block of a protocol's recipe (cpu_recipe.<model.name>; docs/results.md, session 16).
+MEASURED_ENV_OF_BACKBONE = {
+    ("airplane", "dcp"): {"EXTRA": MEASURED_ENV["human"]["EXTRA"], "NUM_LINES": "20000"},  # Human's full-range stage
+}
 SIZES = {"rpm": ["model=rpmnet_cpu"], "dcp": ["model.emb_dims=256", "model.ff_dims=512"], "fmr": []}
 
 
@@ -181,7 +185,8 @@ def test_experiment_under_the_recipe_trains_the_measured_cell(protocol, cell):
     """Issue #13 item 5: `python -m train experiment=<cell> reproduce=<protocol>` (the default
     recipe=cpu, at the grid's backbone sizes) trains what the schedule's cell measured."""
     measured_cell = f"{cell}_nu2" if protocol == "human" and cell.endswith("_ours") else cell
-    result = dry_run(protocol, [measured_cell], RPM_OUTLIER_WEIGHT="0.3", **MEASURED_ENV[protocol])
+    env = MEASURED_ENV_OF_BACKBONE.get((protocol, cell.split("_")[0]), MEASURED_ENV[protocol])
+    result = dry_run(protocol, [measured_cell], RPM_OUTLIER_WEIGHT="0.3", **env)
     assert result.returncode == 0, result.stderr
     schedule = compose_config(overrides=result.stdout.split()[2:])
     experiment = compose_config(overrides=[f"experiment={cell}", f"reproduce={protocol}", *SIZES[cell.split("_")[0]]])

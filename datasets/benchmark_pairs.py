@@ -114,7 +114,9 @@ def dataset_pairs(dataset: Mapping[str, Any], *, pairs: int | None = None, seed:
 
 
 @PAIR_SOURCES.register("run")
-def run_pairs(*, run: str, split: str = "test", pairs: int | None = None, seed: int = 0) -> list[PairSample]:
+def run_pairs(
+    *, run: str, split: str = "test", pairs: int | None = None, seed: int = 0, dataset_seed: int | None = None
+) -> list[PairSample]:
     """The ``split`` pairs of a training run's dataset (its checkpoint's resolved config).
 
     Args:
@@ -122,9 +124,13 @@ def run_pairs(*, run: str, split: str = "test", pairs: int | None = None, seed: 
         split: dataset split (``train``, ``val`` or ``test``).
         pairs: number of pairs (``None``: all).
         seed: seed of the draw.
+        dataset_seed: the dataset's ``seed`` (e.g. the point samples of each frame) instead of the
+            run's (``None``).
     """
-    config = load_checkpoint(find_checkpoint(run))["config"]
-    built = build_split(config["dataset"], split, progress=False)
+    dataset = dict(load_checkpoint(find_checkpoint(run))["config"]["dataset"])
+    if dataset_seed is not None:
+        dataset["seed"] = dataset_seed
+    built = build_split(dataset, split, progress=False)
     if built is None:
         raise ValueError(f"run {run}: its dataset has no {split!r} split")
     chosen = [built[i] for i in select_indices(len(built), pairs, seed)]

@@ -6,15 +6,15 @@
 RPM-Net refines its estimate ``test_iters`` times (5, the original's setting). On the pairs of
 the run's split, for each of ``--draws`` (``dataset.seed``: other point samples of the same
 pairs; default: the run's own draw), it prints the mean Err_R after each iteration, then the mean
-Err_R when every pair keeps the iterate with the lowest value of a label-free score (Chamfer, the
-line metric with a fixed Welsch scale, the paper's line metric) and, as a bound that needs the
-labels, the iterate with the lowest Err_R.
+Err_R when every pair keeps the iterate with the lowest value of a label-free score (the losses
+of ``scripts/loss_at_gt.py``: the paper's line metric, the line metric with a fixed Welsch scale,
+Chamfer and Welsch-Chamfer) and, as a bound that needs the labels, the iterate with the lowest
+Err_R.
 """
 
 from __future__ import annotations
 
 import argparse
-import copy
 import sys
 from pathlib import Path
 
@@ -24,36 +24,17 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from linereg.checkpoint import find_checkpoint, load_checkpoint
 from linereg.datasets import collate_pairs
-from linereg.datasets.benchmark_pairs import labelled_pairs
-from linereg.datasets.splits import build_split
+from linereg.datasets.benchmark_pairs import run_pairs
 from linereg.losses import build_loss
 from linereg.metrics import registration_errors
 from linereg.models import MODELS
 from linereg.se3 import transform_points
+from scripts.loss_at_gt import label_free_losses
 
 
-def label_free_scores(lines: int, fixed_nu: float) -> dict[str, object]:
-    """The losses whose value ranks a pair's iterates (built from the loss registry)."""
-    return {
-        "chamfer (CD)": build_loss({"name": "chamfer"}),
-        f"line metric, fixed nu = {fixed_nu:g}": build_loss(
-            {"name": "line_intersection", "num_lines": lines, "nu": fixed_nu, "seed": 0}
-        ),
-        "line metric (paper: nu = nu0 * median)": build_loss(
-            {"name": "line_intersection", "num_lines": lines, "seed": 0}
-        ),
-    }
-
-
-def iterate_errors(model: torch.nn.Module, config: dict, split: str, draw: int | None, scores: dict) -> dict:
+def iterate_errors(model: torch.nn.Module, run: str, split: str, draw: int | None, scores: dict) -> dict:
     """Per-iteration Err_R ``(I, B)`` and each score ``(I, B)`` on one draw of the split's pairs."""
-    dataset = copy.deepcopy(config["dataset"])
-    if draw is not None:
-        dataset["seed"] = draw
-    built = build_split(dataset, split, progress=False)
-    if built is None:
-        raise SystemExit(f"the run's dataset has no {split!r} split")
-    batch = collate_pairs(labelled_pairs([built[i] for i in range(len(built))], f"{split!r} split"))
+    batch = collate_pairs(run_pairs(run=run, split=split, dataset_seed=draw))
     with torch.no_grad():
         transforms = [T.double() for T in model(batch).transforms]
     src, tgt, gt = batch.src_xyz.double(), batch.tgt_xyz.double(), batch.gt_transform.double()
@@ -75,16 +56,16 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     torch.set_num_threads(args.threads)
     state = load_checkpoint(find_checkpoint(args.run))
-    config = copy.deepcopy(state["config"])
-    if config["model"]["name"] != "rpmnet":
-        raise SystemExit(f"{args.run}: an RPM-Net run is needed, got model {config['model']['name']!r}")
+    model_config = dict(state["config"]["model"])
+    if model_config["name"] != "rpmnet":
+        raise SystemExit(f"{args.run}: an RPM-Net run is needed, got model {model_config['name']!r}")
     if args.iterations is not None:
-        config["model"]["test_iters"] = args.iterations
-    model = MODELS.build(config["model"])
+        model_config["test_iters"] = args.iterations
+    model = MODELS.build(model_config)
     model.load_state_dict(state["model"])
     model.eval()
-    scores = label_free_scores(args.lines, args.fixed_nu)
-    draws = [iterate_errors(model, config, args.split, draw, scores) for draw in args.draws]
+    scores = {name: build_loss(loss) for name, loss in label_free_losses(args.lines, args.fixed_nu).items()}
+    draws = [iterate_errors(model, args.run, args.split, draw, scores) for draw in args.draws]
     errors = torch.cat([d["Err_R"] for d in draws], dim=1)  # (I, pairs over all draws)
     print(f"{errors.shape[1]} {args.split} pairs of {args.run} over draws {args.draws}\n")
     print("| estimate | Err_R mean (deg) | mean iteration kept |\n|---|---:|---:|")

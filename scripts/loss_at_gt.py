@@ -23,6 +23,21 @@ from linereg.losses import build_loss
 from linereg.se3 import transform_points
 
 
+def label_free_losses(lines: int, fixed_nu: float) -> dict[str, dict]:
+    """Configs of the losses that score a pose without labels, by the name of their table row."""
+    return {
+        "line metric (paper: nu = nu0 * median)": {"name": "line_intersection", "num_lines": lines, "seed": 0},
+        f"line metric, fixed nu = {fixed_nu:g}": {
+            "name": "line_intersection",
+            "num_lines": lines,
+            "nu": fixed_nu,
+            "seed": 0,
+        },
+        "chamfer (CD)": {"name": "chamfer"},
+        "chamfer-welsch (CD-W, nu0 0.5)": {"name": "chamfer_welsch", "nu0": 0.5},
+    }
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("run", help="training run folder or checkpoint")
@@ -30,17 +45,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--lines", type=int, default=5000)
     parser.add_argument("--fixed-nu", type=float, default=0.25, help="Welsch scale of the fixed-scale row")
     args = parser.parse_args(argv)
-    losses = {
-        "line metric (paper: nu = nu0 * median)": {"name": "line_intersection", "num_lines": args.lines, "seed": 0},
-        f"line metric, fixed nu = {args.fixed_nu:g}": {
-            "name": "line_intersection",
-            "num_lines": args.lines,
-            "nu": args.fixed_nu,
-            "seed": 0,
-        },
-        "chamfer (CD)": {"name": "chamfer"},
-        "chamfer-welsch (CD-W, nu0 0.5)": {"name": "chamfer_welsch", "nu0": 0.5},
-    }
+    losses = label_free_losses(args.lines, args.fixed_nu)
     pairs = run_pairs(run=args.run, split=args.split)
     print(f"{len(pairs)} {args.split} pairs of {args.run}\n")
     print("| loss | lower at GT than at identity |\n|---|---|")

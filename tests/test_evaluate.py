@@ -110,6 +110,8 @@ def test_benchmark_pairs_of_a_run_are_its_test_pairs(trained_run):
     np.testing.assert_array_equal(pairs[1].src_xyz, expected[1].src_xyz)
     np.testing.assert_array_equal(pairs[1].gt_transform, expected[1].gt_transform)
     assert len(run_pairs(run=str(run_dir), split="val", pairs=1)) == 1
+    redrawn = run_pairs(run=str(run_dir), dataset_seed=7)  # other samples of the same pairs
+    assert len(redrawn) == len(pairs) and not np.allclose(redrawn[0].src_xyz, pairs[0].src_xyz)
 
 
 def test_loss_at_gt_script_counts_pairs_per_loss(trained_run, capsys):
@@ -130,7 +132,7 @@ def test_check_iterations_script_rows_per_iteration_and_per_score(trained_run, c
     assert out.startswith("4 test pairs of")  # 2 pairs, 2 draws
     rows = [line.split(" | ") for line in out.splitlines() if line.startswith("| ") and "---" not in line]
     per_iteration = {row[0]: float(row[1]) for row in rows if "every pair" in row[0]}
-    assert len(per_iteration) == 3 and len(rows) == 3 + 1 + 4  # header, 3 iterations, the bound and 3 scores
+    assert len(per_iteration) == 3 and len(rows) == 1 + 3 + 1 + 4  # header, 3 iterations, the bound, 4 scores
     bound = float(next(row[1] for row in rows if "a bound" in row[0]))
     assert bound <= min(per_iteration.values()) + 1e-9
     assert all(bound <= float(row[1]) + 1e-9 for row in rows if row[0].startswith("| lowest"))

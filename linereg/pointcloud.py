@@ -1,4 +1,4 @@
-"""Point-cloud operations: k nearest neighbours, neighbour spacing, sampling, normals, visibility.
+"""Point-cloud operations: k nearest neighbours, neighbour spacing, fit, sampling, normals, visibility.
 
 Batched tensors are ``(B, P, 3)``; the unbatched ``(P, 3)`` form is accepted wherever the
 docstring says so and gives unbatched outputs. Distances returned here are Euclidean, never
@@ -7,6 +7,7 @@ squared, unless a docstring says otherwise.
 
 from __future__ import annotations
 
+import math
 from typing import NamedTuple
 
 import numpy as np
@@ -164,6 +165,44 @@ def mean_neighbor_distance(points: torch.Tensor | np.ndarray, k: int = 2) -> tor
     if k < 1 or num_points <= k:
         raise ValueError(f"mean_neighbor_distance needs 1 <= k < N, got k={k} for N={num_points} points")
     return knn(points, points, k, exclude_self=True).dists.mean(dim=(-2, -1))
+
+
+def trimmed_chamfer_distance(x: torch.Tensor, y: torch.Tensor, keep_fraction: float = 1.0) -> torch.Tensor:
+    """How far apart two clouds lie, without labels: a symmetric Chamfer distance over each
+    direction's closest points.
+
+    Every point's Euclidean distance to its nearest point of the other cloud is taken; per
+    direction, the ``ceil(keep_fraction * P)`` smallest are averaged, and the two means are
+    added. ``keep_fraction=1`` is the plain Chamfer distance; below 1 it ignores the points
+    of a partial view that have no counterpart in the other cloud (trimmed ICP's criterion).
+
+    Args:
+        x: tensor of shape ``(B, N, 3)`` or ``(N, 3)``.
+        y: tensor of shape ``(B, M, 3)`` or ``(M, 3)``, batched like ``x``.
+        keep_fraction: share of each direction's distances kept, in ``(0, 1]``.
+
+    Returns:
+        Tensor of shape ``(B,)``, or a scalar tensor for unbatched clouds.
+
+    Raises:
+        ValueError: bad shapes, one cloud batched and the other not, NaN/Inf coordinates,
+            different batch sizes, or ``keep_fraction`` outside ``(0, 1]``.
+    """
+    check_points(x, "x")
+    check_points(y, "y")
+    if x.dim() != y.dim():
+        shapes = f"{tuple(x.shape)} and {tuple(y.shape)}"
+        raise ValueError(f"x and y must both be batched or both unbatched, got shapes {shapes}")
+    if x.dim() == 3:
+        check_same_batch(x, y, "x", "y")
+    if not 0.0 < keep_fraction <= 1.0:
+        raise ValueError(f"keep_fraction must be in (0, 1], got {keep_fraction}")
+    total = 0.0
+    for query, reference in ((x, y), (y, x)):
+        nearest = knn(query, reference, 1).dists[..., 0]
+        kept = math.ceil(keep_fraction * nearest.shape[-1])
+        total = total + nearest.topk(kept, dim=-1, largest=False).values.mean(-1)
+    return total
 
 
 def farthest_point_sampling(

@@ -43,7 +43,7 @@ from torch import nn
 from torch.utils.checkpoint import checkpoint as recompute_in_backward
 
 from linereg.models.base import MODELS
-from linereg.pointcloud import knn
+from linereg.pointcloud import knn, trimmed_chamfer_distance
 from linereg.se3 import transform_normals, transform_points
 from linereg.structures import PairBatch, RegistrationOutput
 
@@ -381,13 +381,22 @@ class RPMNet(nn.Module):
             nearly uniform assignment makes the translation that of centroid alignment, off by
             the offset between a partial view's centroid and the whole shape's
             (``scripts/check_translation.py``).
+        keep_best_iterate: outside training, return as the last estimate, per pair, the iterate
+            whose moved source lies closest to the target
+            (:func:`linereg.pointcloud.trimmed_chamfer_distance`; no label is used) instead of
+            the last iterate. ``False`` (the original) keeps the last. Iterations past the ones
+            a pair's motion needs can drift away from the solution (``scripts/check_iterations.py``).
+        fit_keep_fraction: share of each direction's nearest-neighbour distances that the
+            iterate's fit keeps, in ``(0, 1]``; 1 is the Chamfer distance.
 
     ``forward(batch)`` needs ``batch.src_normals`` and ``batch.tgt_normals`` and returns a
     :class:`RegistrationOutput` with one ``(B, 4, 4)`` source -> target estimate per iteration
     and ``extras``:
 
     * ``"perm_matrices"``: list per iteration of ``(B, J, K)`` assignments (slack removed);
-    * ``"beta"``, ``"alpha"``: lists per iteration of ``(B,)`` annealing parameters.
+    * ``"beta"``, ``"alpha"``: lists per iteration of ``(B,)`` annealing parameters;
+    * ``"kept_iteration"`` (with ``keep_best_iterate``, outside training): ``(B,)`` index of the
+      iterate returned last.
     """
 
     def __init__(
@@ -405,12 +414,16 @@ class RPMNet(nn.Module):
         chunk_bytes: int = 4 * 2**20,
         checkpoint: bool = False,
         translation_refinement: int = 0,
+        keep_best_iterate: bool = False,
+        fit_keep_fraction: float = 1.0,
     ) -> None:
         super().__init__()
         if train_iters < 1 or test_iters < 1:
             raise ValueError(f"train_iters and test_iters must be >= 1, got {train_iters} and {test_iters}")
         if translation_refinement < 0:
             raise ValueError(f"translation_refinement must be >= 0, got {translation_refinement}")
+        if not 0.0 < fit_keep_fraction <= 1.0:
+            raise ValueError(f"fit_keep_fraction must be in (0, 1], got {fit_keep_fraction}")
         self.features = PPFFeatures(
             feature_dim,
             radius,
@@ -426,6 +439,8 @@ class RPMNet(nn.Module):
         self.sinkhorn_iters = sinkhorn_iters
         self.slack = slack
         self.translation_refinement = translation_refinement
+        self.keep_best_iterate = keep_best_iterate
+        self.fit_keep_fraction = fit_keep_fraction
 
     def forward(self, batch: PairBatch) -> RegistrationOutput:
         check_pair_batch(batch, "RPM-Net", needs_normals=True, dtype=next(self.parameters()).dtype)
@@ -448,13 +463,24 @@ class RPMNet(nn.Module):
             perm_matrices.append(perm)
             betas.append(beta)
             alphas.append(alpha)
+        extras = {"perm_matrices": perm_matrices, "beta": betas, "alpha": alphas}
+        kept_perm = perm_matrices[-1]
+        if self.keep_best_iterate and not self.training:
+            with torch.no_grad():
+                fits = torch.stack([self._fit(transform_points(T, src), tgt) for T in transforms])  # (I, B)
+            kept = fits.argmin(0)
+            pairs = torch.arange(src.shape[0], device=src.device)
+            transforms[-1] = torch.stack(transforms)[kept, pairs]
+            kept_perm = torch.stack(perm_matrices)[kept, pairs]
+            extras["kept_iteration"] = kept
         if self.translation_refinement and not self.training:
-            mass = perm_matrices[-1].sum(-1)
+            mass = kept_perm.sum(-1)
             transforms[-1] = refine_translation(src, tgt, transforms[-1], mass, self.translation_refinement)
-        return RegistrationOutput(
-            transforms=transforms,
-            extras={"perm_matrices": perm_matrices, "beta": betas, "alpha": alphas},
-        )
+        return RegistrationOutput(transforms=transforms, extras=extras)
+
+    def _fit(self, moved: torch.Tensor, tgt: torch.Tensor) -> torch.Tensor:
+        """``(B,)`` label-free distance between the moved sources and the targets (keep_best_iterate)."""
+        return trimmed_chamfer_distance(moved, tgt, self.fit_keep_fraction)
 
 
 # The paper's defaults are the constructor's: the class itself is the builder.

@@ -127,12 +127,15 @@ def test_check_iterations_script_rows_per_iteration_and_per_score(trained_run, c
     from scripts import check_iterations
 
     run_dir, _ = trained_run
-    assert check_iterations.main([str(run_dir), "--iterations", "3", "--lines", "300", "--draws", "0", "1"]) == 0
+    argv = [str(run_dir), "--iterations", "3", "--lines", "300", "--draws", "0", "1", "--keep-fractions", "1", "0.5"]
+    assert check_iterations.main(argv) == 0
     out = capsys.readouterr().out
     assert out.startswith("4 test pairs of")  # 2 pairs, 2 draws
     rows = [line.split(" | ") for line in out.splitlines() if line.startswith("| ") and "---" not in line]
     per_iteration = {row[0]: float(row[1]) for row in rows if "every pair" in row[0]}
-    assert len(per_iteration) == 3 and len(rows) == 1 + 3 + 1 + 4  # header, 3 iterations, the bound, 4 scores
+    assert len(per_iteration) == 3 and len(rows) == 1 + 3 + 1 + 4 + 2  # header, 3 iterations, the bound, 6 scores
+    kept = {row[0]: row[1:] for row in rows}
+    assert kept["| lowest trimmed Chamfer (keep 1) per pair"] == kept["| lowest chamfer (CD) per pair"]
     bound = float(next(row[1] for row in rows if "a bound" in row[0]))
     assert bound <= min(per_iteration.values()) + 1e-9
     assert all(bound <= float(row[1]) + 1e-9 for row in rows if row[0].startswith("| lowest"))

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import warnings
+from typing import ClassVar
 
 import pytest
 import torch
@@ -435,3 +436,59 @@ def test_overfits_a_single_pair(name):
                 break
     assert initial > 2.0, "the pair is too easy to show learning"
     assert errors[-1] < 1.0, f"rotation error after training: {errors}"
+
+
+class TestRPMNetKeepBestIterate:
+    """``keep_best_iterate``: outside training, each pair's last estimate is its best-fitting iterate."""
+
+    SMALL: ClassVar[dict] = {"name": "rpmnet", "feature_dim": 16, "num_neighbors": 8, "test_iters": 4}
+
+    def _pair(self) -> PairBatch:
+        """Small motions (2 deg), on which the untrained network's iterates drift for some pairs."""
+        generator = torch.Generator().manual_seed(1)
+        src = torch.rand(3, 48, 3, generator=generator) - 0.5
+        normals = F.normalize(torch.randn(3, 48, 3, generator=generator), dim=-1)
+        torch.manual_seed(1)
+        T = random_transform_paper(3, 2)
+        return PairBatch(src, transform_points(T, src), normals, transform_normals(T, normals), gt_transform=T)
+
+    def _models(self, **options):
+        torch.manual_seed(0)
+        plain = MODELS.build(self.SMALL)
+        selecting = MODELS.build({**self.SMALL, "keep_best_iterate": True, **options})
+        selecting.load_state_dict(plain.state_dict())
+        return plain, selecting
+
+    @pytest.mark.parametrize("keep_fraction", [1.0, 0.5])
+    def test_returns_the_iterate_of_lowest_trimmed_chamfer(self, keep_fraction: float):
+        from linereg.pointcloud import trimmed_chamfer_distance
+
+        batch = self._pair()
+        plain, selecting = self._models(fit_keep_fraction=keep_fraction)
+        with torch.no_grad():
+            every = plain.eval()(batch)
+            kept = selecting.eval()(batch)
+        src, tgt = batch.src_xyz, batch.tgt_xyz
+        fits = [trimmed_chamfer_distance(transform_points(T, src), tgt, keep_fraction) for T in every.transforms]
+        expected = torch.stack(fits).argmin(0)
+        assert (expected < len(every.transforms) - 1).any()  # some pair keeps an earlier iterate
+        assert torch.equal(kept.extras["kept_iteration"], expected)
+        for pair, iteration in enumerate(expected.tolist()):
+            torch.testing.assert_close(kept.transforms[-1][pair], every.transforms[iteration][pair])
+        for earlier, same in zip(every.transforms[:-1], kept.transforms[:-1], strict=True):
+            torch.testing.assert_close(earlier, same)
+
+    def test_training_keeps_every_iterate(self):
+        batch = self._pair()
+        plain, selecting = self._models()
+        torch.manual_seed(2)
+        trained = plain.train()(batch)
+        torch.manual_seed(2)
+        same = selecting.train()(batch)
+        assert "kept_iteration" not in same.extras and len(same.transforms) == plain.train_iters
+        for a, b in zip(trained.transforms, same.transforms, strict=True):
+            torch.testing.assert_close(a, b)
+
+    def test_bad_fraction_is_named(self):
+        with pytest.raises(ValueError, match="fit_keep_fraction must be in"):
+            MODELS.build({"name": "rpmnet", "keep_best_iterate": True, "fit_keep_fraction": 0.0})

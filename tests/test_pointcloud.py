@@ -17,6 +17,7 @@ from linereg.pointcloud import (
     knn,
     mean_neighbor_distance,
     resample_indices,
+    trimmed_chamfer_distance,
 )
 
 
@@ -244,3 +245,43 @@ def test_hidden_point_removal_keeps_front_half() -> None:
     assert visible.dtype == np.int64 and np.all(np.diff(visible) > 0)
     assert 0.35 < len(visible) / len(points) < 0.55
     assert (points[visible, 2] > -0.05).mean() > 0.99
+
+
+def _trimmed_chamfer_naive(x: torch.Tensor, y: torch.Tensor, keep_fraction: float) -> torch.Tensor:
+    """Brute force: all distances, each direction's nearest ones sorted and the first share averaged."""
+    dists = ((x[..., :, None, :] - y[..., None, :, :]) ** 2).sum(-1).sqrt()
+    total = 0.0
+    for nearest in (dists.min(-1).values, dists.min(-2).values):
+        kept = int(np.ceil(keep_fraction * nearest.shape[-1]))
+        total = total + nearest.sort(-1).values[..., :kept].mean(-1)
+    return total
+
+
+@pytest.mark.parametrize("keep_fraction", [1.0, 0.9, 0.5, 0.01])
+def test_trimmed_chamfer_distance_matches_brute_force(keep_fraction: float) -> None:
+    generator = torch.Generator().manual_seed(0)
+    x, y = torch.rand(3, 40, 3, generator=generator), torch.rand(3, 31, 3, generator=generator)
+    expected = _trimmed_chamfer_naive(x, y, keep_fraction)
+    torch.testing.assert_close(trimmed_chamfer_distance(x, y, keep_fraction), expected)
+    torch.testing.assert_close(trimmed_chamfer_distance(x[1], y[1], keep_fraction), expected[1])
+
+
+def test_trimmed_chamfer_distance_ignores_points_without_counterpart() -> None:
+    """A partial view: the points one cloud lacks weigh in the plain distance, not the trimmed one."""
+    shared = torch.rand(90, 3, generator=torch.Generator().manual_seed(1))
+    whole = torch.cat([shared, shared[:10] + torch.tensor([5.0, 0.0, 0.0])])
+    assert trimmed_chamfer_distance(shared, whole, 0.9) == 0
+    assert trimmed_chamfer_distance(shared, whole) > 0.4  # 10 of 100 points 5 away: 0.5 in one direction
+
+
+def test_trimmed_chamfer_distance_errors() -> None:
+    x = torch.rand(2, 10, 3)
+    for fraction in (0.0, -0.1, 1.5):
+        with pytest.raises(ValueError, match="keep_fraction must be in"):
+            trimmed_chamfer_distance(x, x, fraction)
+    with pytest.raises(ValueError, match="both be batched or both unbatched"):
+        trimmed_chamfer_distance(x, x[0])
+    with pytest.raises(ValueError, match="batch size"):
+        trimmed_chamfer_distance(x, torch.rand(3, 10, 3))
+    with pytest.raises(ValueError, match="NaN"):
+        trimmed_chamfer_distance(x, torch.full((2, 10, 3), float("nan")))

@@ -21,7 +21,7 @@ import torch
 from torch import nn
 
 from linereg.checks import check_points, check_same_batch
-from linereg.pointcloud import knn
+from linereg.pointcloud import knn, trimmed_chamfer_distance
 from linereg.procrustes import weighted_procrustes
 from linereg.se3 import transform_points
 from linereg.structures import PairBatch
@@ -231,6 +231,29 @@ def soft_correspondence_transform(
             stacklevel=3,
         )
     return result.transform
+
+
+def best_fitting_iterate(
+    src: torch.Tensor, tgt: torch.Tensor, transforms: Sequence[torch.Tensor], keep_fraction: float = 1.0
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Per pair, the iterate whose moved source lies closest to the target, without labels.
+
+    Args:
+        src: tensor of shape ``(B, N, 3)`` giving the source clouds.
+        tgt: tensor of shape ``(B, M, 3)`` giving the target clouds.
+        transforms: ``I`` source -> target estimates of shape ``(B, 4, 4)``, one per iteration.
+        keep_fraction: share of each direction's nearest-neighbour distances kept by the fit
+            (:func:`linereg.pointcloud.trimmed_chamfer_distance`; 1 is the Chamfer distance).
+
+    Returns:
+        The kept estimates ``(B, 4, 4)`` (gradients flow through the kept ones) and the ``(B,)``
+        long index of each pair's kept iterate; ties keep the earliest.
+    """
+    with torch.no_grad():
+        fits = torch.stack([trimmed_chamfer_distance(transform_points(T, src), tgt, keep_fraction) for T in transforms])
+    kept = fits.argmin(0)
+    pairs = torch.arange(src.shape[0], device=src.device)
+    return torch.stack(list(transforms))[kept, pairs], kept
 
 
 def refine_translation(

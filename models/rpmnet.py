@@ -43,12 +43,13 @@ from torch import nn
 from torch.utils.checkpoint import checkpoint as recompute_in_backward
 
 from linereg.models.base import MODELS
-from linereg.pointcloud import knn, trimmed_chamfer_distance
+from linereg.pointcloud import knn
 from linereg.se3 import transform_normals, transform_points
 from linereg.structures import PairBatch, RegistrationOutput
 
 from .blocks import (
     NormKind,
+    best_fitting_iterate,
     check_pair_batch,
     make_norm,
     refine_translation,
@@ -383,7 +384,7 @@ class RPMNet(nn.Module):
             (``scripts/check_translation.py``).
         keep_best_iterate: outside training, return as the last estimate, per pair, the iterate
             whose moved source lies closest to the target
-            (:func:`linereg.pointcloud.trimmed_chamfer_distance`; no label is used) instead of
+            (:func:`linereg.models.blocks.best_fitting_iterate`; no label is used) instead of
             the last iterate. ``False`` (the original) keeps the last. Iterations past the ones
             a pair's motion needs can drift away from the solution (``scripts/check_iterations.py``).
         fit_keep_fraction: share of each direction's nearest-neighbour distances that the
@@ -466,21 +467,13 @@ class RPMNet(nn.Module):
         extras = {"perm_matrices": perm_matrices, "beta": betas, "alpha": alphas}
         kept_perm = perm_matrices[-1]
         if self.keep_best_iterate and not self.training:
-            with torch.no_grad():
-                fits = torch.stack([self._fit(transform_points(T, src), tgt) for T in transforms])  # (I, B)
-            kept = fits.argmin(0)
-            pairs = torch.arange(src.shape[0], device=src.device)
-            transforms[-1] = torch.stack(transforms)[kept, pairs]
-            kept_perm = torch.stack(perm_matrices)[kept, pairs]
+            transforms[-1], kept = best_fitting_iterate(src, tgt, transforms, self.fit_keep_fraction)
+            kept_perm = torch.stack(perm_matrices)[kept, torch.arange(src.shape[0], device=src.device)]
             extras["kept_iteration"] = kept
         if self.translation_refinement and not self.training:
             mass = kept_perm.sum(-1)
             transforms[-1] = refine_translation(src, tgt, transforms[-1], mass, self.translation_refinement)
         return RegistrationOutput(transforms=transforms, extras=extras)
-
-    def _fit(self, moved: torch.Tensor, tgt: torch.Tensor) -> torch.Tensor:
-        """``(B,)`` label-free distance between the moved sources and the targets (keep_best_iterate)."""
-        return trimmed_chamfer_distance(moved, tgt, self.fit_keep_fraction)
 
 
 # The paper's defaults are the constructor's: the class itself is the builder.

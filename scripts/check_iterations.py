@@ -1,9 +1,10 @@
-"""How RPM-Net's error moves over its iterations, and whether a label-free score picks a better one.
+"""How an iterative network's error moves over its iterations, and whether a label-free score picks a better one.
 
-    python scripts/check_iterations.py <run>                          # an RPM-Net run's test pairs
+    python scripts/check_iterations.py <run>                          # an RPM-Net or FMR run's test pairs
     python scripts/check_iterations.py <run> --iterations 10 --draws 0 1 2 3
 
-RPM-Net refines its estimate ``test_iters`` times (5, the original's setting). On the pairs of
+RPM-Net refines its estimate ``test_iters`` times (5, the original's setting), FMR up to
+``test_iters`` times (10; its solver may stop earlier, then every row counts fewer). On the pairs of
 the run's split, for each of ``--draws`` (``dataset.seed``: other point samples of the same
 pairs; default: the run's own draw), it prints the mean Err_R after each iteration, then the mean
 Err_R when every pair keeps the iterate with the lowest value of a label-free score (the losses
@@ -54,7 +55,7 @@ def iterate_errors(
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("run", help="an RPM-Net training run folder or checkpoint")
+    parser.add_argument("run", help="an RPM-Net or FMR training run folder or checkpoint")
     parser.add_argument("--split", default="test")
     parser.add_argument("--iterations", type=int, default=None, help="test iterations (default: the run's)")
     parser.add_argument("--draws", type=int, nargs="+", default=[None], help="dataset.seed values (default: the run's)")
@@ -68,8 +69,8 @@ def main(argv: list[str] | None = None) -> int:
     torch.set_num_threads(args.threads)
     state = load_checkpoint(find_checkpoint(args.run))
     model_config = dict(state["config"]["model"])
-    if model_config["name"] != "rpmnet":
-        raise SystemExit(f"{args.run}: an RPM-Net run is needed, got model {model_config['name']!r}")
+    if model_config["name"] not in ("rpmnet", "fmr"):
+        raise SystemExit(f"{args.run}: an RPM-Net or FMR run is needed, got model {model_config['name']!r}")
     if args.iterations is not None:
         model_config["test_iters"] = args.iterations
     model_config["keep_best_iterate"] = False

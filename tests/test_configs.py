@@ -102,6 +102,8 @@ def test_recipe_cpu_replaces_the_schedule_of_experiments_and_grids(experiment):
             assert terms["alignment"]["num_lines"] == (20000 if many else 5000)
         if experiment.startswith("rpm"):  # RPM-Net's own block: its best-fitting iterate, on every protocol
             assert cfg.model.keep_best_iterate is bool(protocol) and cfg.model.fit_keep_fraction == 1.0
+        elif experiment.startswith("fmr"):  # FMR's, on Real only
+            assert cfg.model.keep_best_iterate is (protocol == "real") and cfg.model.fit_keep_fraction == 1.0
         else:
             assert "keep_best_iterate" not in cfg.model
         build_components(cfg)
@@ -137,8 +139,9 @@ def test_recipe_paper_keeps_the_experiments_schedule_and_checkpoint(experiment):
     human = compose_config(overrides=[f"experiment={experiment}", "recipe=paper", "reproduce=human"])
     paper = compose_config(overrides=[f"experiment={experiment}", "recipe=paper"])
     assert "nu0" not in human.recipe and human.loss.nu0 == paper.loss.nu0  # Human's cpu_recipe stays out
-    if experiment.startswith("rpm"):
-        assert human.model.keep_best_iterate is False and paper.model.keep_best_iterate is False
+    if not experiment.startswith("dcp"):
+        real = compose_config(overrides=[f"experiment={experiment}", "recipe=paper", "reproduce=real"])
+        assert not (human.model.keep_best_iterate or paper.model.keep_best_iterate or real.model.keep_best_iterate)
     airplane = compose_config(overrides=[f"experiment={experiment}", "recipe=paper", "reproduce=airplane"])
     grid = compose_config(overrides=["experiment=rpm_gt", "recipe=paper", "reproduce=airplane"])  # no block of its own
     assert Curriculum.from_config(airplane.curriculum).stages == Curriculum.from_config(grid.curriculum).stages

@@ -492,3 +492,31 @@ class TestRPMNetKeepBestIterate:
     def test_bad_fraction_is_named(self):
         with pytest.raises(ValueError, match="fit_keep_fraction must be in"):
             MODELS.build({"name": "rpmnet", "keep_best_iterate": True, "fit_keep_fraction": 0.0})
+
+
+def test_fmr_keep_best_iterate_returns_the_iterate_of_lowest_chamfer():
+    """FMR's ``keep_best_iterate``, as RPM-Net's: an independent argmin, earlier iterates untouched."""
+    from linereg.pointcloud import trimmed_chamfer_distance
+
+    generator = torch.Generator().manual_seed(1)
+    src = torch.rand(3, 48, 3, generator=generator) - 0.5
+    torch.manual_seed(1)
+    T = random_transform_paper(3, 10)
+    batch = PairBatch(src, transform_points(T, src), gt_transform=T)
+    small = {"name": "fmr", "dim_k": 32, "decoder_points": None, "test_iters": 5}
+    torch.manual_seed(0)
+    plain = MODELS.build(small).eval()
+    selecting = MODELS.build({**small, "keep_best_iterate": True}).eval()
+    selecting.load_state_dict(plain.state_dict())
+    with torch.no_grad():
+        every, kept = plain(batch), selecting(batch)
+    fits = [trimmed_chamfer_distance(transform_points(T, src), batch.tgt_xyz) for T in every.transforms]
+    expected = torch.stack(fits).argmin(0)
+    assert (expected < len(every.transforms) - 1).any() and torch.equal(kept.extras["kept_iteration"], expected)
+    for pair, iteration in enumerate(expected.tolist()):
+        torch.testing.assert_close(kept.transforms[-1][pair], every.transforms[iteration][pair])
+    for earlier, same in zip(every.transforms[:-1], kept.transforms[:-1], strict=True):
+        torch.testing.assert_close(earlier, same)
+    assert "kept_iteration" not in selecting.train()(batch).extras
+    with pytest.raises(ValueError, match="fit_keep_fraction must be in"):
+        MODELS.build({**small, "fit_keep_fraction": 2.0})

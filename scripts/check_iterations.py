@@ -4,7 +4,8 @@
     python scripts/check_iterations.py <run> --iterations 10 --draws 0 1 2 3
 
 RPM-Net refines its estimate ``test_iters`` times (5, the original's setting), FMR up to
-``test_iters`` times (10; its solver may stop earlier, then every row counts fewer). On the pairs of
+``test_iters`` times (10; a solver that stops earlier keeps its last estimate for the remaining
+rows). On the pairs of
 the run's split, for each of ``--draws`` (``dataset.seed``: other point samples of the same
 pairs; default: the run's own draw), it prints the mean Err_R after each iteration, then the mean
 Err_R when every pair keeps the iterate with the lowest value of a label-free score (the losses
@@ -53,6 +54,11 @@ def iterate_errors(
     return values
 
 
+def _repeat_last(rows: torch.Tensor, count: int) -> torch.Tensor:
+    """``(count, B)``: ``rows (I, B)`` followed by copies of its last row (a solver that stopped early)."""
+    return torch.cat([rows, rows[-1:].expand(count - rows.shape[0], -1)])
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("run", help="an RPM-Net or FMR training run folder or checkpoint")
@@ -79,6 +85,8 @@ def main(argv: list[str] | None = None) -> int:
     model.eval()
     scores = {name: build_loss(loss) for name, loss in label_free_losses(args.lines, args.fixed_nu).items()}
     draws = [iterate_errors(model, args.run, args.split, draw, scores, args.keep_fractions) for draw in args.draws]
+    iterations = max(d["Err_R"].shape[0] for d in draws)
+    draws = [{name: _repeat_last(rows, iterations) for name, rows in d.items()} for d in draws]
     errors = torch.cat([d["Err_R"] for d in draws], dim=1)  # (I, pairs over all draws)
     print(f"{errors.shape[1]} {args.split} pairs of {args.run} over draws {args.draws}\n")
     print("| estimate | Err_R mean (deg) | mean iteration kept |\n|---|---:|---:|")

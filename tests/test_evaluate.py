@@ -141,6 +141,16 @@ def test_check_iterations_script_rows_per_iteration_and_per_score(trained_run, c
     assert all(bound <= float(row[1]) + 1e-9 for row in rows if row[0].startswith("| lowest"))
 
 
+def test_check_iterations_pads_a_solver_that_stopped_early():
+    """FMR may stop before ``test_iters``: its later rows repeat its last estimate's, so draws line up."""
+    from scripts.check_iterations import _repeat_last
+
+    rows = torch.tensor([[3.0, 1.0], [2.0, 4.0]])
+    padded = _repeat_last(rows, 4)
+    assert padded.shape == (4, 2) and torch.equal(padded[:2], rows) and torch.equal(padded[2:], rows[1:].expand(2, 2))
+    assert torch.equal(_repeat_last(rows, 2), rows)
+
+
 def test_report_of_unlabelled_data():
     text = report("model", Evaluation(num_pairs=3, losses={"loss": 0.25}), [0.1])
     assert text == "3 pairs without ground truth: no registration errors; mean loss 0.25."

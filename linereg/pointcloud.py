@@ -7,7 +7,6 @@ squared, unless a docstring says otherwise.
 
 from __future__ import annotations
 
-import math
 from typing import NamedTuple
 
 import numpy as np
@@ -167,7 +166,9 @@ def mean_neighbor_distance(points: torch.Tensor | np.ndarray, k: int = 2) -> tor
     return knn(points, points, k, exclude_self=True).dists.mean(dim=(-2, -1))
 
 
-def trimmed_chamfer_distance(x: torch.Tensor, y: torch.Tensor, keep_fraction: float = 1.0) -> torch.Tensor:
+def trimmed_chamfer_distance(
+    x: torch.Tensor, y: torch.Tensor, keep_fraction: float | torch.Tensor = 1.0
+) -> torch.Tensor:
     """How far apart two clouds lie, without labels: a symmetric Chamfer distance over each
     direction's closest points.
 
@@ -179,15 +180,75 @@ def trimmed_chamfer_distance(x: torch.Tensor, y: torch.Tensor, keep_fraction: fl
     Args:
         x: tensor of shape ``(B, N, 3)`` or ``(N, 3)``.
         y: tensor of shape ``(B, M, 3)`` or ``(M, 3)``, batched like ``x``.
-        keep_fraction: share of each direction's distances kept, in ``(0, 1]``.
+        keep_fraction: share of each direction's distances kept, in ``(0, 1]``: one number, or
+            a tensor of shape ``(B,)`` giving each pair its own share (batched clouds only).
 
     Returns:
         Tensor of shape ``(B,)``, or a scalar tensor for unbatched clouds.
 
     Raises:
         ValueError: bad shapes, one cloud batched and the other not, NaN/Inf coordinates,
-            different batch sizes, or ``keep_fraction`` outside ``(0, 1]``.
+            different batch sizes, a ``keep_fraction`` outside ``(0, 1]`` or of the wrong shape.
     """
+    _check_cloud_pair(x, y)
+    # float64, so that ceil(0.9 * 100) is 90 as with Python numbers
+    fraction = torch.as_tensor(keep_fraction, dtype=torch.float64, device=x.device)
+    if fraction.dim() > 0 and (x.dim() != 3 or fraction.shape != x.shape[:1]):
+        shapes = f"clouds {tuple(x.shape)}, keep_fraction {tuple(fraction.shape)}"
+        raise ValueError(f"a keep_fraction tensor needs batched clouds and shape (B,), got {shapes}")
+    if not bool(((fraction > 0) & (fraction <= 1)).all()):
+        raise ValueError(f"keep_fraction must be in (0, 1], got {keep_fraction}")
+    total = 0.0
+    for query, reference in ((x, y), (y, x)):
+        nearest = knn(query, reference, 1).dists[..., 0]
+        count = nearest.shape[-1]
+        kept = torch.ceil(fraction * count).clamp(1, count)
+        closest_first = nearest.sort(dim=-1).values
+        mask = torch.arange(count, device=x.device) < kept[..., None]
+        total = total + (closest_first * mask).sum(-1) / kept.to(nearest.dtype)
+    return total
+
+
+def weighted_chamfer_distance(
+    x: torch.Tensor, y: torch.Tensor, x_weights: torch.Tensor, y_weights: torch.Tensor
+) -> torch.Tensor:
+    """A symmetric Chamfer distance in which each point counts by its weight.
+
+    Per direction, the weighted mean of every point's Euclidean distance to its nearest point
+    of the other cloud; the two means are added. Uniform weights give the plain Chamfer
+    distance. With RPM-Net's soft assignment masses as weights, points the assignment leaves
+    unmatched (no counterpart in a partial view) count little.
+
+    Args:
+        x: tensor of shape ``(B, N, 3)`` or ``(N, 3)``.
+        y: tensor of shape ``(B, M, 3)`` or ``(M, 3)``, batched like ``x``.
+        x_weights: tensor of shape ``(B, N)`` or ``(N,)``: non-negative, a positive sum per cloud.
+        y_weights: tensor of shape ``(B, M)`` or ``(M,)``, likewise.
+
+    Returns:
+        Tensor of shape ``(B,)``, or a scalar tensor for unbatched clouds.
+
+    Raises:
+        ValueError: bad shapes, one cloud batched and the other not, NaN/Inf coordinates or
+            weights, different batch sizes, negative weights or a cloud whose weights sum to 0.
+    """
+    _check_cloud_pair(x, y)
+    total = 0.0
+    for query, reference, weights, name in ((x, y, x_weights, "x_weights"), (y, x, y_weights, "y_weights")):
+        if tuple(weights.shape) != tuple(query.shape[:-1]):
+            raise ValueError(f"{name} must have shape {tuple(query.shape[:-1])}, got {tuple(weights.shape)}")
+        if not bool(torch.isfinite(weights).all()) or bool((weights < 0).any()):
+            raise ValueError(f"{name} must be finite and non-negative")
+        mass = weights.sum(-1)
+        if bool((mass <= 0).any()):
+            raise ValueError(f"{name} must have a positive sum for every cloud")
+        nearest = knn(query, reference, 1).dists[..., 0]
+        total = total + (nearest * weights.to(nearest.dtype)).sum(-1) / mass.to(nearest.dtype)
+    return total
+
+
+def _check_cloud_pair(x: torch.Tensor, y: torch.Tensor) -> None:
+    """Both clouds finite, ``(B, P, 3)`` with one batch size or both ``(P, 3)``."""
     check_points(x, "x")
     check_points(y, "y")
     if x.dim() != y.dim():
@@ -195,14 +256,6 @@ def trimmed_chamfer_distance(x: torch.Tensor, y: torch.Tensor, keep_fraction: fl
         raise ValueError(f"x and y must both be batched or both unbatched, got shapes {shapes}")
     if x.dim() == 3:
         check_same_batch(x, y, "x", "y")
-    if not 0.0 < keep_fraction <= 1.0:
-        raise ValueError(f"keep_fraction must be in (0, 1], got {keep_fraction}")
-    total = 0.0
-    for query, reference in ((x, y), (y, x)):
-        nearest = knn(query, reference, 1).dists[..., 0]
-        kept = math.ceil(keep_fraction * nearest.shape[-1])
-        total = total + nearest.topk(kept, dim=-1, largest=False).values.mean(-1)
-    return total
 
 
 def farthest_point_sampling(

@@ -10,9 +10,12 @@ the run's split, for each of ``--draws`` (``dataset.seed``: other point samples 
 pairs; default: the run's own draw), it prints the mean Err_R after each iteration, then the mean
 Err_R when every pair keeps the iterate with the lowest value of a label-free score (the losses
 of ``scripts/loss_at_gt.py``: the paper's line metric, the line metric with a fixed Welsch scale,
-Chamfer and Welsch-Chamfer; and the trimmed Chamfer distances of ``--keep-fractions``, the fit
-that ``model.keep_best_iterate`` uses) and, as a bound that needs the labels, the iterate with the
-lowest Err_R. The run's own ``keep_best_iterate`` is turned off here, so every iterate is seen.
+Chamfer and Welsch-Chamfer; the trimmed Chamfer distances of ``--keep-fractions``, the fit
+that ``model.keep_best_iterate`` uses; for RPM-Net, two fits that read each iterate's soft
+assignment: the Chamfer distance with every point weighted by the assignment mass it receives,
+and the Chamfer distance trimmed to the share of mass the assignment matches) and, as a bound
+that needs the labels, the iterate with the lowest Err_R. The run's own ``keep_best_iterate`` is
+turned off here, so every iterate is seen.
 """
 
 from __future__ import annotations
@@ -31,7 +34,7 @@ from linereg.datasets.benchmark_pairs import run_pairs
 from linereg.losses import build_loss
 from linereg.metrics import registration_errors
 from linereg.models import MODELS
-from linereg.pointcloud import trimmed_chamfer_distance
+from linereg.pointcloud import trimmed_chamfer_distance, weighted_chamfer_distance
 from linereg.se3 import transform_points
 from scripts.loss_at_gt import label_free_losses
 
@@ -42,7 +45,8 @@ def iterate_errors(
     """Per-iteration Err_R ``(I, B)`` and each score ``(I, B)`` on one draw of the split's pairs."""
     batch = collate_pairs(run_pairs(run=run, split=split, dataset_seed=draw))
     with torch.no_grad():
-        transforms = [T.double() for T in model(batch).transforms]
+        output = model(batch)
+    transforms = [T.double() for T in output.transforms]
     src, tgt, gt = batch.src_xyz.double(), batch.tgt_xyz.double(), batch.gt_transform.double()
     values = {"Err_R": torch.stack([registration_errors(T, gt, src)["err_r_deg"] for T in transforms])}
     for name, loss in scores.items():
@@ -51,6 +55,16 @@ def iterate_errors(
         name = f"trimmed Chamfer (keep {fraction:g})"
         fits = [trimmed_chamfer_distance(transform_points(T, src), tgt, fraction) for T in transforms]
         values[name] = torch.stack(fits)
+    if "perm_matrices" in output.extras:  # RPM-Net: (B, J, K) assignments, slack removed
+        masses = [(perm.sum(-1).double(), perm.sum(-2).double()) for perm in output.extras["perm_matrices"]]
+        moved = [transform_points(T, src) for T in transforms]
+        values["assignment-weighted Chamfer"] = torch.stack(
+            [weighted_chamfer_distance(x, tgt, *mass) for x, mass in zip(moved, masses, strict=True)]
+        )
+        matched = [rows.mean(-1).clamp(1e-6, 1) for rows, _ in masses]  # (B,) share of the source matched
+        values["Chamfer trimmed to the assignment's mass"] = torch.stack(
+            [trimmed_chamfer_distance(x, tgt, share) for x, share in zip(moved, matched, strict=True)]
+        )
     return values
 
 

@@ -133,9 +133,12 @@ def test_check_iterations_script_rows_per_iteration_and_per_score(trained_run, c
     assert out.startswith("4 test pairs of")  # 2 pairs, 2 draws
     rows = [line.split(" | ") for line in out.splitlines() if line.startswith("| ") and "---" not in line]
     per_iteration = {row[0]: float(row[1]) for row in rows if "every pair" in row[0]}
-    assert len(per_iteration) == 3 and len(rows) == 1 + 3 + 1 + 4 + 2  # header, 3 iterations, the bound, 6 scores
+    # header, 3 iterations, the bound, 8 scores (4 losses, 2 trimmed fits, RPM-Net's 2 assignment fits)
+    assert len(per_iteration) == 3 and len(rows) == 1 + 3 + 1 + 4 + 2 + 2
     kept = {row[0]: row[1:] for row in rows}
     assert kept["| lowest trimmed Chamfer (keep 1) per pair"] == kept["| lowest chamfer (CD) per pair"]
+    assert "| lowest assignment-weighted Chamfer per pair" in kept
+    assert "| lowest Chamfer trimmed to the assignment's mass per pair" in kept
     bound = float(next(row[1] for row in rows if "a bound" in row[0]))
     assert bound <= min(per_iteration.values()) + 1e-9
     assert all(bound <= float(row[1]) + 1e-9 for row in rows if row[0].startswith("| lowest"))

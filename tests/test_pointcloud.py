@@ -18,6 +18,7 @@ from linereg.pointcloud import (
     mean_neighbor_distance,
     resample_indices,
     trimmed_chamfer_distance,
+    weighted_chamfer_distance,
 )
 
 
@@ -285,3 +286,52 @@ def test_trimmed_chamfer_distance_errors() -> None:
         trimmed_chamfer_distance(x, torch.rand(3, 10, 3))
     with pytest.raises(ValueError, match="NaN"):
         trimmed_chamfer_distance(x, torch.full((2, 10, 3), float("nan")))
+    with pytest.raises(ValueError, match=r"keep_fraction tensor needs batched clouds and shape \(B,\)"):
+        trimmed_chamfer_distance(x, x, torch.full((3,), 0.5))
+    with pytest.raises(ValueError, match="keep_fraction must be in"):
+        trimmed_chamfer_distance(x, x, torch.tensor([0.5, 0.0]))
+    with pytest.raises(ValueError, match="needs batched clouds"):
+        trimmed_chamfer_distance(x[0], x[0], torch.tensor([0.5]))
+
+
+def test_trimmed_chamfer_distance_takes_a_share_per_pair() -> None:
+    generator = torch.Generator().manual_seed(2)
+    x, y = torch.rand(3, 40, 3, generator=generator), torch.rand(3, 31, 3, generator=generator)
+    shares = torch.tensor([1.0, 0.9, 0.3])
+    expected = torch.stack([_trimmed_chamfer_naive(x[b], y[b], float(shares[b])) for b in range(3)])
+    torch.testing.assert_close(trimmed_chamfer_distance(x, y, shares), expected)
+
+
+def test_weighted_chamfer_distance_matches_brute_force() -> None:
+    generator = torch.Generator().manual_seed(3)
+    x, y = torch.rand(2, 40, 3, generator=generator), torch.rand(2, 31, 3, generator=generator)
+    x_weights, y_weights = torch.rand(2, 40, generator=generator), torch.rand(2, 31, generator=generator)
+    dists = ((x[..., :, None, :] - y[..., None, :, :]) ** 2).sum(-1).sqrt()
+    expected = (dists.min(-1).values * x_weights).sum(-1) / x_weights.sum(-1)
+    expected = expected + (dists.min(-2).values * y_weights).sum(-1) / y_weights.sum(-1)
+    torch.testing.assert_close(weighted_chamfer_distance(x, y, x_weights, y_weights), expected)
+    torch.testing.assert_close(weighted_chamfer_distance(x[0], y[0], x_weights[0], y_weights[0]), expected[0])
+    uniform = weighted_chamfer_distance(x, y, torch.ones(2, 40), torch.full((2, 31), 3.0))
+    torch.testing.assert_close(uniform, trimmed_chamfer_distance(x, y))
+
+
+def test_weighted_chamfer_distance_ignores_points_of_zero_weight() -> None:
+    shared = torch.rand(90, 3, generator=torch.Generator().manual_seed(1))
+    whole = torch.cat([shared, shared[:10] + torch.tensor([5.0, 0.0, 0.0])])
+    unmatched = torch.cat([torch.ones(90), torch.zeros(10)])
+    assert weighted_chamfer_distance(shared, whole, torch.ones(90), unmatched) == 0
+
+
+def test_weighted_chamfer_distance_errors() -> None:
+    x = torch.rand(2, 10, 3)
+    ones = torch.ones(2, 10)
+    with pytest.raises(ValueError, match=r"x_weights must have shape \(2, 10\)"):
+        weighted_chamfer_distance(x, x, torch.ones(10), ones)
+    with pytest.raises(ValueError, match="y_weights must be finite and non-negative"):
+        weighted_chamfer_distance(x, x, ones, -ones)
+    with pytest.raises(ValueError, match="x_weights must be finite"):
+        weighted_chamfer_distance(x, x, torch.full((2, 10), float("nan")), ones)
+    with pytest.raises(ValueError, match="positive sum"):
+        weighted_chamfer_distance(x, x, ones, torch.zeros(2, 10))
+    with pytest.raises(ValueError, match="both be batched or both unbatched"):
+        weighted_chamfer_distance(x, x[0], ones, ones[0])

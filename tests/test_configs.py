@@ -102,8 +102,8 @@ def test_recipe_cpu_replaces_the_schedule_of_experiments_and_grids(experiment):
             assert terms["alignment"]["num_lines"] == (20000 if many else 5000)
         if experiment.startswith("rpm"):  # RPM-Net's own block: its best-fitting iterate, on every protocol
             assert cfg.model.keep_best_iterate is bool(protocol) and cfg.model.fit_keep_fraction == 1.0
-        elif experiment.startswith("fmr"):  # FMR's, on Real only
-            assert cfg.model.keep_best_iterate is (protocol == "real") and cfg.model.fit_keep_fraction == 1.0
+        elif experiment.startswith("fmr"):  # FMR's, on Human and Real (its Airplane models were not re-measured)
+            assert cfg.model.keep_best_iterate is (protocol in ("human", "real")) and cfg.model.fit_keep_fraction == 1.0
         else:
             assert "keep_best_iterate" not in cfg.model
         build_components(cfg)

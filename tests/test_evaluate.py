@@ -123,6 +123,44 @@ def test_loss_at_gt_script_counts_pairs_per_loss(trained_run, capsys):
     assert len(rows) == 4 and rows[2].startswith("| chamfer (CD) |")
 
 
+def test_loss_minimum_script_rows_per_loss(trained_run, capsys):
+    from scripts import loss_minimum
+
+    run_dir, _ = trained_run
+    argv = [str(run_dir), "--lines", "300", "--nu0", "0.5", "2", "--iterations", "5"]
+    assert loss_minimum.main(argv) == 0
+    out = capsys.readouterr().out
+    assert out.startswith("2 test pairs of")
+    rows = [line.split(" | ") for line in out.splitlines() if line.startswith("| ") and "---" not in line]
+    assert [row[0] for row in rows[1:]] == [
+        "| chamfer (CD)",
+        "| line metric, 300 lines, nu0 = 0.5",
+        "| line metric, 300 lines, nu0 = 2",
+    ]
+    assert all(float(value) >= 0 for row in rows[1:] for value in row[1].split(" / "))
+
+
+def test_distance_to_minimum_returns_to_the_minimum_of_an_exact_copy():
+    """Chamfer between a cloud and its moved copy is 0 only at the true pose: Adam finds it from 4 deg off."""
+    from linereg.losses import build_loss
+    from linereg.registration.solvers import Stage
+    from linereg.se3 import se3_exp, transform_points
+    from scripts.loss_minimum import distance_to_minimum
+
+    generator = torch.Generator().manual_seed(0)
+    src = torch.rand(200, 3, generator=generator, dtype=torch.float64) - 0.5
+    gt = se3_exp(torch.tensor([[0.3, -0.2, 0.5, 0.1, 0.0, -0.1]], dtype=torch.float64))[0]
+    tgt = transform_points(gt, src)
+    off = se3_exp(torch.tensor([[0.05, 0.03, -0.04, 0.02, -0.01, 0.03]], dtype=torch.float64))[0] @ gt
+    stage = Stage(loss={}, iterations=300, lr=0.005)
+    chamfer = build_loss({"name": "chamfer"})
+    err_r, err_t = distance_to_minimum(chamfer, src, tgt, gt, Stage(loss={}, iterations=0, lr=0.005), start=off)
+    assert err_r > 3.5 and err_t > 0.05  # no iteration: the start itself
+    err_r, err_t = distance_to_minimum(chamfer, src, tgt, gt, stage, start=off)
+    assert err_r < 0.05 and err_t < 1e-3
+    assert distance_to_minimum(chamfer, src, tgt, gt, stage)[0] < 0.05  # from the ground truth it stays
+
+
 def test_check_iterations_script_rows_per_iteration_and_per_score(trained_run, capsys):
     from scripts import check_iterations
 

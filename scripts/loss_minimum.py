@@ -82,8 +82,8 @@ def main(argv: list[str] | None = None) -> int:
         f"{len(pairs)} {args.split} pairs of {args.run}; Adam from the ground truth, {args.iterations} iterations\n",
         flush=True,
     )
-    print("| loss | Err_R at its minimum, deg (mean / median) | Err_t l1 (x10^-1) (mean / median) |")
-    print("|---|---|---|")
+    print("| loss | Err_R at its minimum, deg (mean / median) | beyond 1 deg | Err_t l1 (x10^-1) (mean / median) |")
+    print("|---|---|---|---|")
     for label, config in training_losses(args.lines, args.nu0).items():
         loss = build_loss(config)
         rotation, translation = [], []
@@ -96,6 +96,7 @@ def main(argv: list[str] | None = None) -> int:
             translation.append(10 * err_t)
         print(
             f"| {label} | {statistics.mean(rotation):.3f} / {statistics.median(rotation):.3f} "
+            f"| {sum(error > 1.0 for error in rotation)} of {len(rotation)} pairs "
             f"| {statistics.mean(translation):.3f} / {statistics.median(translation):.3f} |",
             flush=True,
         )

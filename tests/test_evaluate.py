@@ -138,6 +138,7 @@ def test_loss_minimum_script_rows_per_loss(trained_run, capsys):
         "| line metric, 300 lines, nu0 = 2",
     ]
     assert all(float(value) >= 0 for row in rows[1:] for value in row[1].split(" / "))
+    assert all(row[2].endswith(" of 2 pairs") and 0 <= int(row[2].split()[0]) <= 2 for row in rows[1:])
 
 
 def test_distance_to_minimum_returns_to_the_minimum_of_an_exact_copy():

@@ -5,7 +5,7 @@ PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 
 .DEFAULT_GOAL := help
-.PHONY: help setup test test-full wheel-smoke lint train train-full
+.PHONY: help setup test test-full wheel-smoke lint train train-full figures
 
 help:  ## list the targets
 	@grep -E '^[a-z-]+:.*##' $(MAKEFILE_LIST) | awk -F':.*## ' '{printf "  make %-10s %s\n", $$1, $$2}'
@@ -41,3 +41,6 @@ train: setup  ## train the embedded default: RPM-Net + line loss on procedural s
 
 train-full: setup  ## the paper's RPM-Net + line-loss configuration (python -m train experiment=rpm_ours recipe=paper)
 	$(PY) -m train experiment=rpm_ours recipe=paper
+
+figures: setup  ## draw docs/results/<protocol>.png (Err_R per seed of each cell) from docs/results/cells.csv
+	$(PY) scripts/reproduce_report.py --cells docs/results/cells.csv --figures docs/results

@@ -19,6 +19,7 @@ from packaging.requirements import Requirement
 
 HERE = Path.cwd()
 FOREIGN_NAMES = ("losses", "models", "datasets", "train", "registration", "configs")
+COMMANDS = ("linereg-train", "linereg-evaluate", "linereg-register", "linereg-benchmark")
 
 
 def check(condition: bool, message: str) -> None:
@@ -26,11 +27,11 @@ def check(condition: bool, message: str) -> None:
         raise SystemExit(f"wheel smoke test FAILED: {message}")
 
 
-def run(*command: str) -> subprocess.CompletedProcess:
+def run(*command: str, code: int = 0) -> subprocess.CompletedProcess:
     start = time.perf_counter()
     done = subprocess.run(command, cwd=HERE, capture_output=True, text=True, check=False, timeout=600)
     output = done.stdout[-3000:] + done.stderr[-3000:]
-    check(done.returncode == 0, f"{' '.join(command)} exited {done.returncode}:\n{output}")
+    check(done.returncode == code, f"{' '.join(command)} exited {done.returncode}, not {code}:\n{output}")
     print(f"{command[0]}: {time.perf_counter() - start:.1f} s")
     return done
 
@@ -83,6 +84,12 @@ def main(wheel: str) -> None:
     result = linereg.register(cloud, shift, num_points=256)
     check(abs(result.transformation[0, 3] - 0.05) < 1e-3 and result.fitness > 0.9, f"register: {result}")
 
+    for command in COMMANDS:  # the help templates are installed with the configs
+        usage = run(command, "--help").stdout
+        check(f"usage: {command}" in usage, f"{command} --help prints no usage line:\n{usage[:1000]}")
+    refused = run("linereg-register", code=2).stderr.strip()
+    check(len(refused.splitlines()) == 1 and "source=" in refused, f"linereg-register without a source:\n{refused}")
+
     from linereg.io import write_point_cloud
 
     write_point_cloud(HERE / "a.ply", cloud.astype("float32"))
@@ -97,7 +104,7 @@ def main(wheel: str) -> None:
     check((HERE / "run" / "checkpoints" / "last.pt").is_file(), "linereg-train wrote no checkpoint")
     run("linereg-evaluate", f"checkpoint={HERE / 'run'}", f"output_dir={HERE / 'evaluation'}", "progress=false")
     check((HERE / "evaluation" / "metrics.json").is_file(), "linereg-evaluate wrote no metrics.json")
-    print(f"wheel smoke test: linereg {linereg.__version__} from {site}: imports, loss, register, commands OK")
+    print(f"wheel smoke test: linereg {linereg.__version__} from {site}: imports, loss, register, commands, help OK")
 
 
 if __name__ == "__main__":

@@ -17,9 +17,9 @@ Paper protocol (§4.1), :class:`ViewProtocol`:
    a random composite transform (Euler angles U[0, 45] deg, translation U[-0.2, 0.2]^3, as DCP);
    ``gt_transform`` is that transform (source -> target).
 
-RPM-Net crop protocol (reference-notes §4.4), :class:`CropProtocol`: independent 70% half-space
-crops of one complete cloud, source perturbed (Euler U[0, 45] deg, t U[-0.5, 0.5]^3),
-resampling to 717 points, clipped Gaussian jitter.
+RPM-Net crop protocol (RPM-Net's repository, src/data_loader/transforms.py), :class:`CropProtocol`:
+independent 70% half-space crops of one complete cloud, source perturbed (Euler U[0, 45] deg,
+t U[-0.5, 0.5]^3), resampling to 717 points, clipped Gaussian jitter.
 
 Everything is a pure function of the shape, the view index and the generator passed in.
 """
@@ -394,7 +394,8 @@ class ViewProtocol:
 
 @dataclass(frozen=True)
 class CropProtocol:
-    """RPM-Net's ModelNet40 partial-visibility ("crop") protocol (reference-notes §4.4).
+    """RPM-Net's ModelNet40 partial-visibility ("crop") protocol (RPM-Net's repository,
+    src/data_loader/transforms.py).
 
     Attributes:
         name: preset name recorded in the metadata.

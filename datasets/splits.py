@@ -4,9 +4,11 @@ Dataset configs (``configs/dataset/``) hold the builder's keys plus two sections
 
     name: procedural             # linereg.datasets.DATASETS entry; other keys are its arguments
     protocol: {...}
-    splits: {train: {split: train}, val: {split: val}, test: {split: test}}  # null: no split
+    splits: {train: {split: train}, val: {split: train, seed: 1, subset: 36}, test: {split: test}}
     variants: {easy: {protocol: {max_angle_deg: 15}}}
 
+A split's entry overrides the common keys (``null`` removes the split) and may hold ``subset``,
+the pairs of that split kept (e.g. a validation set of fresh poses of a few training shapes).
 ``variants`` are overrides applied to a split (e.g. smaller poses for a curriculum's first stage);
 a subset is a number of pairs (int) or a fraction of the split (float in ``(0, 1]``), drawn at
 random (seeded).
@@ -27,6 +29,8 @@ from linereg.registry import plain
 from linereg.structures import PairSample
 
 SPLITS = ("train", "val", "test")
+# Keys of a split's entry read here, not by the dataset builder.
+SPLIT_KEYS = ("subset",)
 
 
 class SubsetPairs(PairDataset):
@@ -112,13 +116,14 @@ def build_split(
     """The dataset of one split, optionally a seeded subset, cached on disk when configured.
 
     A ``cache_dir`` key generates the pairs actually used (the subset, not the whole split)
-    once into the on-disk cache of :mod:`linereg.datasets.cache`.
+    once into the on-disk cache of :mod:`linereg.datasets.cache`. The split's own ``subset``
+    (its entry in ``splits``) applies when ``subset`` is ``None``.
 
     Args:
         config: a dataset config (see the module docstring).
         split: ``"train"``, ``"val"`` or ``"test"``.
         variant: dataset variant (curriculum stages).
-        subset: pairs kept (see :class:`Stage`).
+        subset: pairs kept (see :class:`linereg.train.curriculum.Stage`).
         seed: subset selection seed.
         progress: show the cache generation bar.
 
@@ -129,6 +134,9 @@ def build_split(
     if builder_config is None:
         return None
     cache = {key: builder_config.pop(key) for key in CACHE_KEYS if key in builder_config}
+    own = {key: builder_config.pop(key) for key in SPLIT_KEYS if key in builder_config}
+    if subset is None:
+        subset = own.get("subset")
     dataset = build_dataset(builder_config)
     indices = subset_indices(len(dataset), subset, seed)
     if indices is not None:

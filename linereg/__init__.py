@@ -1,6 +1,6 @@
 """linereg: unsupervised rigid point-cloud registration with the line-intersection loss.
 
-The core modules (``linereg.se3``, ``linereg.procrustes``, ``linereg.pointcloud``,
+The core modules (``linereg.se3``, ``linereg.procrustes``, ``linereg.knn``, ``linereg.pointcloud``,
 ``linereg.metrics``, ``linereg.io``, ...) hold the geometry shared by every layer; the
 subpackages ``linereg.losses``, ``linereg.models``, ``linereg.datasets``,
 ``linereg.registration`` and ``linereg.train`` build on them. :func:`register` aligns two

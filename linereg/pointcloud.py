@@ -1,4 +1,4 @@
-"""Point-cloud operations: k nearest neighbours, neighbour spacing, fit, sampling, normals, visibility.
+"""Point-cloud operations: neighbour spacing, Chamfer distances, fit, sampling, normals, visibility.
 
 Batched tensors are ``(B, P, 3)``; the unbatched ``(P, 3)`` form is accepted wherever the
 docstring says so and gives unbatched outputs. Distances returned here are Euclidean, never
@@ -7,138 +7,12 @@ squared, unless a docstring says otherwise.
 
 from __future__ import annotations
 
-from typing import NamedTuple
-
 import numpy as np
 import torch
-from scipy.spatial import cKDTree
 
 from linereg.checks import check_points, check_same_batch
 from linereg.fps import farthest_point_indices
-
-_CHUNK_BYTES = 64 * 2**20
-
-
-class KNN(NamedTuple):
-    """Result of :func:`knn`.
-
-    Attributes:
-        dists: tensor of shape ``(..., P, K)`` giving the Euclidean (not squared) distance from
-            each query point to its neighbours, sorted ascending; differentiable with respect
-            to both the query and the reference points.
-        idx: long tensor of shape ``(..., P, K)`` giving the index of each neighbour in the
-            reference cloud.
-    """
-
-    dists: torch.Tensor
-    idx: torch.Tensor
-
-
-def knn(
-    query: torch.Tensor,
-    reference: torch.Tensor,
-    k: int,
-    *,
-    exclude_self: bool = False,
-) -> KNN:
-    """The ``k`` nearest reference points of every query point.
-
-    Indices come from ``scipy.spatial.cKDTree`` on CPU and from chunked ``torch.cdist`` +
-    ``topk`` on other devices (at most ~64 MB of distances at once); distances are then
-    recomputed from the gathered points so that gradients reach both clouds.
-
-    Args:
-        query: tensor of shape ``(B, P, 3)`` or ``(P, 3)`` giving the query points.
-        reference: tensor of shape ``(B, R, 3)`` or ``(R, 3)`` (same batching as ``query``)
-            giving the points searched.
-        k: number of neighbours, ``1 <= k <= R`` (``k <= R - 1`` with ``exclude_self``).
-        exclude_self: ``query`` must be ``reference``; each point is left out of its own
-            neighbour list (exactly one entry is dropped per row, so duplicated points still
-            find their duplicates).
-
-    Returns:
-        :class:`KNN` with ``dists`` and ``idx`` of shape ``(B, P, k)`` or ``(P, k)``.
-
-    Raises:
-        TypeError: non-float inputs.
-        ValueError: bad shapes, mismatched batching or devices, ``k`` out of range, or
-            ``exclude_self`` with two different clouds.
-    """
-    check_points(query, "query")
-    check_points(reference, "reference")
-    if query.ndim != reference.ndim:
-        raise ValueError(
-            f"query and reference must both be batched or both unbatched, got shapes "
-            f"{tuple(query.shape)} and {tuple(reference.shape)}"
-        )
-    if query.device != reference.device:
-        raise ValueError(f"query and reference must be on the same device, got {query.device} and {reference.device}")
-    unbatched = query.ndim == 2
-    if unbatched:
-        query, reference = query.unsqueeze(0), reference.unsqueeze(0)
-    check_same_batch(query, reference, "query", "reference")
-    if exclude_self and (query.shape != reference.shape or not torch.equal(query.detach(), reference.detach())):
-        raise ValueError("exclude_self=True requires query to be the reference cloud itself")
-    num_ref = reference.shape[1]
-    searched = k + 1 if exclude_self else k
-    if k < 1 or searched > num_ref:
-        limit = f"{num_ref - 1} (exclude_self drops each point itself)" if exclude_self else num_ref
-        raise ValueError(f"k must be between 1 and {limit} for {num_ref} reference points, got {k}")
-
-    with torch.no_grad():
-        if query.device.type == "cpu":
-            idx = _knn_indices_kdtree(query, reference, searched)
-        else:
-            idx = _knn_indices_cdist(query, reference, searched)
-        if exclude_self:
-            idx = _drop_self(idx)
-    batch = torch.arange(query.shape[0], device=query.device)[:, None, None]
-    dists = (query[:, :, None, :] - reference[batch, idx]).norm(dim=-1)
-    if unbatched:
-        return KNN(dists[0], idx[0])
-    return KNN(dists, idx)
-
-
-_PARALLEL_QUERY_MIN = 50_000
-
-
-def _knn_indices_kdtree(query: torch.Tensor, reference: torch.Tensor, k: int) -> torch.Tensor:
-    """``(B, P, k)`` neighbour indices from one cKDTree per batch element."""
-    batch, num_query = query.shape[:2]
-    query_np = query.detach().numpy()
-    reference_np = reference.detach().numpy()
-    idx = np.empty((batch, num_query, k), dtype=np.int64)
-    for b in range(batch):
-        # Worker threads cost more than they save on small queries.
-        workers = -1 if num_query * k >= _PARALLEL_QUERY_MIN else 1
-        _, found = cKDTree(reference_np[b]).query(query_np[b], k=k, workers=workers)
-        idx[b] = found.reshape(num_query, k)
-    return torch.from_numpy(idx)
-
-
-def _knn_indices_cdist(query: torch.Tensor, reference: torch.Tensor, k: int) -> torch.Tensor:
-    """``(B, P, k)`` neighbour indices from brute-force distances, chunked to bound memory."""
-    batch, num_query = query.shape[:2]
-    rows = max(1, _CHUNK_BYTES // (reference.shape[1] * reference.element_size()))
-    batch_step = max(1, rows // num_query)
-    query_step = min(num_query, rows)
-    idx = torch.empty((batch, num_query, k), dtype=torch.long, device=query.device)
-    for b0 in range(0, batch, batch_step):
-        b1 = b0 + batch_step
-        for p0 in range(0, num_query, query_step):
-            p1 = p0 + query_step
-            dists = torch.cdist(query[b0:b1, p0:p1], reference[b0:b1])
-            idx[b0:b1, p0:p1] = dists.topk(k, dim=-1, largest=False, sorted=True).indices
-    return idx
-
-
-def _drop_self(idx: torch.Tensor) -> torch.Tensor:
-    """Remove each point's own index from its ``k + 1`` neighbours (else the farthest one)."""
-    num_points = idx.shape[1]
-    own = torch.arange(num_points, device=idx.device)[None, :, None]
-    drop = idx == own
-    drop[..., -1] |= ~drop.any(dim=-1)
-    return idx[~drop].reshape(idx.shape[0], num_points, idx.shape[2] - 1)
+from linereg.knn import knn_distances
 
 
 def mean_neighbor_distance(points: torch.Tensor | np.ndarray, k: int = 2) -> torch.Tensor:
@@ -163,7 +37,7 @@ def mean_neighbor_distance(points: torch.Tensor | np.ndarray, k: int = 2) -> tor
     num_points = points.shape[-2]
     if k < 1 or num_points <= k:
         raise ValueError(f"mean_neighbor_distance needs 1 <= k < N, got k={k} for N={num_points} points")
-    return knn(points, points, k, exclude_self=True).dists.mean(dim=(-2, -1))
+    return knn_distances(points, points, k, exclude_self=True).mean(dim=(-2, -1))
 
 
 def trimmed_chamfer_distance(
@@ -200,7 +74,7 @@ def trimmed_chamfer_distance(
         raise ValueError(f"keep_fraction must be in (0, 1], got {keep_fraction}")
     total = 0.0
     for query, reference in ((x, y), (y, x)):
-        nearest = knn(query, reference, 1).dists[..., 0]
+        nearest = knn_distances(query, reference)[..., 0]
         count = nearest.shape[-1]
         kept = torch.ceil(fraction * count).clamp(1, count)
         closest_first = nearest.sort(dim=-1).values
@@ -242,7 +116,7 @@ def weighted_chamfer_distance(
         mass = weights.sum(-1)
         if bool((mass <= 0).any()):
             raise ValueError(f"{name} must have a positive sum for every cloud")
-        nearest = knn(query, reference, 1).dists[..., 0]
+        nearest = knn_distances(query, reference)[..., 0]
         total = total + (nearest * weights.to(nearest.dtype)).sum(-1) / mass.to(nearest.dtype)
     return total
 

@@ -1,4 +1,5 @@
-"""Weighted rigid Procrustes (Kabsch / Umeyama) with safe fallbacks and gradients.
+"""Weighted rigid Procrustes (Kabsch / Umeyama): a torch solver with safe fallbacks and gradients,
+and its numpy twin for the numpy solvers.
 
 Solves, per batch element,
 
@@ -10,6 +11,10 @@ cross-covariance ``M = sum_i p_i (tgt_i - c_tgt)(src_i - c_src)^T``, the rotatio
 rotation nearest to ``M`` (``argmax_R tr(R^T M)``, reflection excluded) and
 ``t = c_tgt - R @ c_src``.
 
+:func:`weighted_procrustes` (torch, differentiable) and :func:`weighted_procrustes_numpy` (numpy,
+many problems at once, no gradient) solve the same problem; torch is imported on first use of
+the torch solver, so that numpy callers such as the ``register`` default do not load it.
+
 References:
     W. Kabsch, "A solution for the best rotation to relate two sets of vectors",
     Acta Crystallographica A32, 1976.
@@ -20,13 +25,14 @@ References:
 from __future__ import annotations
 
 import warnings
-from typing import NamedTuple
+from typing import TYPE_CHECKING, NamedTuple
 
-import roma
-import torch
+import numpy as np
 
 from linereg.checks import check_shape
-from linereg.se3 import rt_to_matrix
+
+if TYPE_CHECKING:
+    import torch
 
 # Relative size of the second singular value of M below which the rotation is not unique
 # (a single direction of spread: collinear points).
@@ -50,7 +56,9 @@ class ProcrustesResult(NamedTuple):
 
 
 def _check_inputs(src: torch.Tensor, tgt: torch.Tensor, weights: torch.Tensor | None) -> None:
-    """Shape and type checks shared by both solvers."""
+    """Shape and type checks shared by both torch solvers."""
+    import torch
+
     check_shape(src, "src", (3,))
     check_shape(tgt, "tgt", (3,))
     if src.ndim != 3:
@@ -71,6 +79,9 @@ def _check_inputs(src: torch.Tensor, tgt: torch.Tensor, weights: torch.Tensor | 
 
 def _nearest_rotation(M: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """Rotations nearest to ``M (B, 3, 3)`` and a ``(B,)`` mask of samples the solver handled."""
+    import roma
+    import torch
+
     try:
         rotation = roma.special_procrustes(M)
     except (RuntimeError, ValueError):
@@ -121,6 +132,10 @@ def weighted_procrustes(
         :class:`ProcrustesResult` with ``transform (B, 4, 4)`` (dtype of ``src``) and
         ``valid (B,)``.
     """
+    import torch
+
+    from linereg.se3 import rt_to_matrix
+
     _check_inputs(src, tgt, weights)
     src64, tgt64 = src.double(), tgt.double()
     weights64 = torch.ones_like(src64[..., 0]) if weights is None else weights.double()
@@ -194,6 +209,10 @@ def procrustes_naive(
     Returns:
         Tensor of shape ``(B, 4, 4)`` giving ``T_tgt_src`` (dtype of ``src``).
     """
+    import torch
+
+    from linereg.se3 import rt_to_matrix
+
     _check_inputs(src, tgt, weights)
     if weights is None:
         weights = torch.ones_like(src[..., 0])
@@ -209,3 +228,37 @@ def procrustes_naive(
     rotation = U @ torch.diag_embed(reflection) @ Vh
     translation = tgt_centroid - (rotation @ src_centroid[..., None])[..., 0]
     return rt_to_matrix(rotation, translation)
+
+
+def weighted_procrustes_numpy(
+    src: np.ndarray, tgt: np.ndarray, weights: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Numpy twin of :func:`weighted_procrustes` for ``K`` problems at once (no gradient).
+
+    The rotation comes from the SVD of the weighted cross-covariance with the reflection
+    excluded; the inputs are not checked (the numpy solvers call it on their own arrays).
+
+    Args:
+        src: array of shape ``(K, N, 3)`` giving source points.
+        tgt: array of shape ``(K, N, 3)`` giving the corresponding target points.
+        weights: array of shape ``(K, N)`` giving non-negative weights.
+
+    Returns:
+        ``(rotations (K, 3, 3), translations (K, 3), valid (K,))``; ``valid`` is false where the
+        weights sum to (almost) zero, and the transform is then the identity.
+    """
+    total = weights.sum(axis=1)
+    valid = total > 1e-12
+    w = (weights / np.where(valid, total, 1.0)[:, None])[:, None, :]
+    src_mean = (w @ src)[:, 0]
+    tgt_mean = (w @ tgt)[:, 0]
+    cov = ((src - src_mean[:, None]) * w.transpose(0, 2, 1)).transpose(0, 2, 1) @ (tgt - tgt_mean[:, None])
+    u, _, vt = np.linalg.svd(cov)
+    v_ut = vt.transpose(0, 2, 1) @ u.transpose(0, 2, 1)
+    sign = np.where(np.linalg.det(v_ut) < 0, -1.0, 1.0)
+    vt[:, 2] *= sign[:, None]
+    rotations = vt.transpose(0, 2, 1) @ u.transpose(0, 2, 1)
+    rotations[~valid] = np.eye(3)
+    translations = tgt_mean - (rotations @ src_mean[:, :, None])[:, :, 0]
+    translations[~valid] = 0.0
+    return rotations, translations, valid

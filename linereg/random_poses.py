@@ -111,7 +111,7 @@ def random_transform_rpmnet(
     dtype: torch.dtype = torch.float32,
     device: torch.device | str = "cpu",
 ) -> torch.Tensor:
-    """The RPM-Net / ModelNet40 "crop" perturbation (reference-notes §4.4).
+    """The RPM-Net / ModelNet40 "crop" perturbation (RPM-Net's repository, src/data_loader/transforms.py).
 
     Three Euler angles each U[0, rot_mag_deg], ``R = Rx Ry Rz``; translation U[-trans_mag,
     trans_mag]^3. This is the perturbation *applied to the source* cloud

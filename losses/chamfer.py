@@ -1,8 +1,8 @@
 """Chamfer distance (CD) and Welsch-Chamfer (CD-W), paper Eq. (2) and supplementary.
 
-Nearest neighbours come from :func:`linereg.pointcloud.knn` (a KD-tree on the CPU, chunked
-``cdist`` on CUDA), so large clouds never materialise an ``N x M`` matrix; distances are
-gathered afterwards and are differentiable w.r.t. both clouds.
+Nearest neighbours come from :func:`linereg.knn.knn_distances` (a KD-tree for large clouds on
+the CPU, chunked brute force otherwise), so large clouds never materialise an ``N x M`` matrix;
+distances are gathered afterwards and are differentiable w.r.t. both clouds.
 """
 
 from __future__ import annotations
@@ -13,7 +13,7 @@ import numbers
 import torch
 
 from linereg.checks import check_lengths, check_points, check_same_batch
-from linereg.pointcloud import knn
+from linereg.knn import knn_distances
 
 from .base import LOSSES, AlignmentLoss
 
@@ -35,7 +35,7 @@ def _directed_nn_distances(
     for b in range(x.shape[0]):
         xb = x[b, : int(x_lengths[b])] if x_lengths is not None else x[b]
         yb = y[b, : int(y_lengths[b])] if y_lengths is not None else y[b]
-        out.append((knn(xb, yb, 1).dists[:, 0], knn(yb, xb, 1).dists[:, 0]))
+        out.append((knn_distances(xb, yb)[:, 0], knn_distances(yb, xb)[:, 0]))
     return out
 
 

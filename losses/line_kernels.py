@@ -1,12 +1,11 @@
-"""Compiled (numba) index kernels of the line-intersection metric.
+"""Compiled (numba) candidate search of the line-intersection metric.
 
-The kernels decide *which* points form each intersection and *which* intersections are matched
-(indices and detached convex weights). :func:`welsch_lines` then computes the value of the
-paper's per-line reduction and, since the weights are constants, its gradient w.r.t. every point
-in closed form; the loss wraps it in a ``torch.autograd.Function``. For the other settings the
-loss gathers the points with torch and autograd differentiates the value. The k nearest
-neighbours of the points and their radii come from :func:`cloud_neighborhoods` (a uniform grid,
-searched ring by ring).
+The kernels decide *which* points form each intersection (indices and detached convex
+weights). On the numba path, :func:`linereg.losses.line_welsch_kernels.welsch_lines` then
+matches the intersections and computes the value of the paper's per-line reduction with its
+gradient in closed form; for the other settings the loss gathers the points with torch and
+autograd differentiates the value. The k nearest neighbours of the points and their radii come
+from :func:`linereg.losses.line_neighbors.cloud_neighborhoods`.
 
 Candidate search, without ever testing all point-line pairs:
 
@@ -225,8 +224,6 @@ def _pierce_weights(points, a, b, c, ox, oy, oz, ux, uy, uz, out):
     return True
 
 
-
-
 @numba.njit(cache=True, inline="always")
 def _axis_walk(o, u, lo, cell, dim, t_in, t_out):
     """DDA set-up on one axis between the parameters ``t_in`` and ``t_out`` of a line inside the
@@ -418,7 +415,7 @@ def _clamped_d2(points, i, ox, oy, oz, ux, uy, uz):
 
 
 @numba.njit(cache=True)
-def _float_zeros(shape):
+def float_zeros(shape):
     """``np.zeros(shape)``, compiled apart: written inside a ``parallel=True`` kernel, an
     allocation (or any array expression) becomes a parallel region of its own, and each region
     wakes the threads; the kernels keep parallel regions to their ``prange`` loops."""
@@ -426,8 +423,8 @@ def _float_zeros(shape):
 
 
 @numba.njit(cache=True)
-def _int_zeros(shape):
-    """``np.zeros(shape, int64)``, compiled apart (see :func:`_float_zeros`)."""
+def int_zeros(shape):
+    """``np.zeros(shape, int64)``, compiled apart (see :func:`float_zeros`)."""
     return np.zeros(shape, dtype=np.int64)
 
 
@@ -492,7 +489,7 @@ def line_intersections(origins, dirs, line_offsets, points, point_offsets, radiu
     item_sample = np.empty(n_items, dtype=np.int64)
     item_first = np.empty(n_items, dtype=np.int64)
     item_stop = np.empty(n_items, dtype=np.int64)
-    buffer_start = _int_zeros(n_items + 1)
+    buffer_start = int_zeros(n_items + 1)
     item = 0
     for b in range(n_samples):
         for j in range(items_per_sample[b]):
@@ -505,7 +502,7 @@ def line_intersections(origins, dirs, line_offsets, points, point_offsets, radiu
     room = buffer_start[-1]
     buffer_anchor = np.empty(n_sides * room, dtype=np.int64)
     buffer_weight = np.empty((n_sides * room, k + 1))
-    counts = _int_zeros(n_sides * n_lines)
+    counts = int_zeros(n_sides * n_lines)
     item_total = np.empty((n_items, n_sides), dtype=np.int64)
     for item in numba.prange(n_items):
         rows = np.empty(n_sides, dtype=np.int64)
@@ -579,383 +576,3 @@ def line_intersections(origins, dirs, line_offsets, points, point_offsets, radiu
                 rows + item_total[item],
             )
     return offsets, anchors, weights
-
-
-@numba.njit(cache=True, inline="always")
-def _nearest(points, row, others, start, stop):
-    """Index in ``[start, stop)`` of the row of ``others`` closest to ``points[row]``."""
-    best = np.inf
-    arg = start
-    for j in range(start, stop):
-        d = 0.0
-        for a in range(3):
-            diff = points[row, a] - others[j, a]
-            d += diff * diff
-        if d < best:
-            best = d
-            arg = j
-    return arg
-
-
-@numba.njit(cache=True)
-def match_along_lines(src_offsets, tgt_offsets, src_points, tgt_points, pair_offsets):
-    """Closest-point matching both ways between the intersections of each line.
-
-    Args:
-        src_offsets, tgt_offsets: ``(L+1,)`` CSR offsets of the source/target intersections.
-        src_points, tgt_points: ``(Hs, 3)``, ``(Ht, 3)`` float64 intersection points.
-        pair_offsets: ``(L+1,)`` where line ``l`` owns ``|S_l| + |T_l|`` pair slots if it is
-            kept, zero otherwise.
-
-    Returns:
-        ``src_index (P,)``, ``tgt_index (P,)`` int64 (into the intersection arrays), and
-        ``line (P,)`` int64. Slots ``[0, |S_l|)`` of a line match each source intersection to
-        its closest target intersection (sigma_l); the rest match each target intersection to
-        its closest source intersection (rho_l).
-    """
-    n_lines = src_offsets.shape[0] - 1
-    n_pairs = pair_offsets[-1]
-    src_index = np.empty(n_pairs, dtype=np.int64)
-    tgt_index = np.empty(n_pairs, dtype=np.int64)
-    line_of = np.empty(n_pairs, dtype=np.int64)
-    for line in range(n_lines):
-        p = pair_offsets[line]
-        if pair_offsets[line + 1] == p:
-            continue
-        s0, s1 = src_offsets[line], src_offsets[line + 1]
-        g0, g1 = tgt_offsets[line], tgt_offsets[line + 1]
-        for s in range(s0, s1):
-            src_index[p] = s
-            tgt_index[p] = _nearest(src_points, s, tgt_points, g0, g1)
-            line_of[p] = line
-            p += 1
-        for g in range(g0, g1):
-            src_index[p] = _nearest(tgt_points, g, src_points, s0, s1)
-            tgt_index[p] = g
-            line_of[p] = line
-            p += 1
-    return src_index, tgt_index, line_of
-
-
-@numba.njit(cache=True, parallel=True)
-def _hit_points(offsets, anchors, weights, line_offsets, points, point_offsets, neighbors):
-    """``(H, 3)`` intersection points ``sum_m weights[h, m] * member_m`` (anchor first, then its
-    neighbours), and ``(H, k+1)`` the rows of ``points`` of the members; clouds in parallel."""
-    n_hits = anchors.shape[0]
-    k = neighbors.shape[1]
-    hit_points = np.empty((n_hits, 3))
-    members = np.empty((n_hits, k + 1), dtype=np.int64)
-    for c in numba.prange(point_offsets.shape[0] - 1):
-        p0 = point_offsets[c]
-        for h in range(offsets[line_offsets[c]], offsets[line_offsets[c + 1]]):
-            anchor = p0 + anchors[h]
-            members[h, 0] = anchor
-            for m in range(k):
-                members[h, m + 1] = p0 + neighbors[anchor, m]
-            for a in range(3):
-                total = 0.0
-                for m in range(k + 1):
-                    total += weights[h, m] * points[members[h, m], a]
-                hit_points[h, a] = total
-    return hit_points, members
-
-
-@numba.njit(cache=True)
-def _pair_slots(offsets, line_offsets, n_samples, max_hits):
-    """Per line of the source side (``(Ls,)``, sample-major): intersections on each side, whether
-    the line is kept, and ``(Ls+1,)`` offsets of its ``|S_l| + |T_l|`` pair slots (0 if dropped)."""
-    n_lines = line_offsets[n_samples]
-    ns = np.empty(n_lines, dtype=np.int64)
-    nt = np.empty(n_lines, dtype=np.int64)
-    keep = np.empty(n_lines, dtype=np.bool_)
-    pair_offsets = np.zeros(n_lines + 1, dtype=np.int64)
-    for line in range(n_lines):
-        ns[line] = offsets[line + 1] - offsets[line]
-        other = line + line_offsets[n_samples]
-        nt[line] = offsets[other + 1] - offsets[other]
-        within = max_hits < 0 or (ns[line] <= max_hits and nt[line] <= max_hits)
-        keep[line] = ns[line] >= 1 and nt[line] >= 1 and within
-        pair_offsets[line + 1] = pair_offsets[line] + (ns[line] + nt[line] if keep[line] else 0)
-    return ns, nt, keep, pair_offsets
-
-
-@numba.njit(cache=True, parallel=True)
-def _closest_pairs(offsets, line_offsets, n_samples, hit_points, keep, pair_offsets):
-    """Both-way closest-point matches on every kept line: ``(P,)`` source hit, target hit and
-    squared distance; slots ``[0, |S_l|)`` of a line are ``sigma_l``, the rest ``rho_l``."""
-    n_pairs = pair_offsets[-1]
-    src_hit = np.empty(n_pairs, dtype=np.int64)
-    tgt_hit = np.empty(n_pairs, dtype=np.int64)
-    dist_sq = np.empty(n_pairs)
-    for line in numba.prange(line_offsets[n_samples]):
-        if not keep[line]:
-            continue
-        p = pair_offsets[line]
-        s0, s1 = offsets[line], offsets[line + 1]
-        other = line + line_offsets[n_samples]
-        g0, g1 = offsets[other], offsets[other + 1]
-        for s in range(s0, s1):
-            src_hit[p] = s
-            tgt_hit[p] = _nearest(hit_points, s, hit_points, g0, g1)
-            p += 1
-        for g in range(g0, g1):
-            src_hit[p] = _nearest(hit_points, g, hit_points, s0, s1)
-            tgt_hit[p] = g
-            p += 1
-    for p in numba.prange(n_pairs):
-        d = 0.0
-        for a in range(3):
-            diff = hit_points[src_hit[p], a] - hit_points[tgt_hit[p], a]
-            d += diff * diff
-        dist_sq[p] = d
-    return src_hit, tgt_hit, dist_sq
-
-
-@numba.njit(cache=True, parallel=True)
-def welsch_lines(
-    offsets,
-    anchors,
-    weights,
-    line_offsets,
-    points,
-    point_offsets,
-    neighbors,
-    n_samples,
-    max_hits,
-    line_weight,
-    squared_input,
-    nu0,
-    fixed_nu,
-    tiny,
-):
-    """Steps 2 and 3 of the metric with reduction ``lines``, and its gradient, from the output of
-    :func:`line_intersections` (clouds ordered ``src_0 .. src_{B-1}, tgt_0 .. tgt_{B-1}``, the
-    lines of ``tgt_b`` being those of ``src_b``).
-
-    The value of sample ``b`` is ``sum_pairs w_l psi(|x - y|) / kept_b`` over the closest-point
-    pairs of its kept lines, ``psi = 1 - exp(-d^2 / two_c)`` with ``two_c = 2 nu^2``
-    (``2 nu`` for ``squared_input``), ``nu = fixed_nu`` if ``fixed_nu > 0`` else ``nu0`` times
-    the lower median of ``d`` (``d^2`` for ``squared_input``) over the sample's pairs, detached;
-    ``tiny`` bounds ``two_c`` from below. The convex weights are constants, so the gradient of
-    ``value_b`` w.r.t. a point is the weighted sum of the gradients w.r.t. the intersections it
-    belongs to.
-
-    Args:
-        offsets, anchors, weights: the output of :func:`line_intersections`.
-        line_offsets, points, point_offsets, neighbors: its inputs (``2 B`` clouds).
-        n_samples: ``B``.
-        max_hits: lines with more intersections on a side are dropped (-1: no limit).
-        line_weight: weight each line by ``w_l = exp(-| |S_l| - |T_l| | / 2)`` (else 1).
-
-    Returns:
-        ``value (B,)``, ``grad (N, 3)`` (``d value_b / d points``, rows as ``points``),
-        ``scale (B,)`` (``nu``; 0 for a sample without pairs) and ``counts (B, 5)`` int64: kept
-        lines, lines hit on the source and on the target side, source and target intersections.
-    """
-    hit_points, members = _hit_points(offsets, anchors, weights, line_offsets, points, point_offsets, neighbors)
-    ns, nt, keep, pair_offsets = _pair_slots(offsets, line_offsets, n_samples, max_hits)
-    src_hit, tgt_hit, dist_sq = _closest_pairs(offsets, line_offsets, n_samples, hit_points, keep, pair_offsets)
-    value = _float_zeros(n_samples)
-    scale = _float_zeros(n_samples)
-    counts = _int_zeros((n_samples, 5))
-    two_c = _float_zeros(n_samples)
-    per_line = _float_zeros(n_samples)
-    line_sample = np.empty(line_offsets[n_samples], dtype=np.int64)
-    for b in range(n_samples):
-        l0, l1 = line_offsets[b], line_offsets[b + 1]
-        for line in range(l0, l1):
-            line_sample[line] = b
-            counts[b, 0] += keep[line]
-            counts[b, 1] += ns[line] > 0
-            counts[b, 2] += nt[line] > 0
-            counts[b, 3] += ns[line]
-            counts[b, 4] += nt[line]
-        q0, q1 = pair_offsets[l0], pair_offsets[l1]
-        if q1 == q0:
-            continue
-        if fixed_nu > 0.0:
-            scale[b] = fixed_nu
-        else:
-            middle = (q1 - q0 - 1) // 2
-            lower_median = np.partition(dist_sq[q0:q1], middle)[middle]
-            scale[b] = nu0 * (lower_median if squared_input else math.sqrt(lower_median))
-        two_c[b] = max(2.0 * (scale[b] if squared_input else scale[b] * scale[b]), tiny)
-        per_line[b] = 1.0 / max(counts[b, 0], 1)
-    # Lines in parallel: each intersection belongs to one line, so each gradient row has one writer.
-    line_total = np.empty(line_offsets[n_samples])
-    hit_grad = _float_zeros((anchors.shape[0], 3))
-    for line in numba.prange(line_offsets[n_samples]):
-        b = line_sample[line]
-        w = math.exp(-abs(ns[line] - nt[line]) / 2.0) if line_weight else 1.0
-        total = 0.0
-        for p in range(pair_offsets[line], pair_offsets[line + 1]):
-            near = math.exp(-dist_sq[p] / two_c[b])
-            total += w * (1.0 - near)
-            slope = per_line[b] * w * near * 2.0 / two_c[b]
-            s, g = src_hit[p], tgt_hit[p]
-            for a in range(3):
-                step = slope * (hit_points[s, a] - hit_points[g, a])
-                hit_grad[s, a] += step
-                hit_grad[g, a] -= step
-        line_total[line] = total
-    for b in range(n_samples):
-        total = 0.0  # a plain loop: an array sum here would become a parallel reduction
-        for line in range(line_offsets[b], line_offsets[b + 1]):
-            total += line_total[line]
-        value[b] = total * per_line[b]
-    # Clouds in parallel: the members of an intersection are points of its own cloud.
-    grad = _float_zeros(points.shape)
-    for c in numba.prange(point_offsets.shape[0] - 1):
-        for h in range(offsets[line_offsets[c]], offsets[line_offsets[c + 1]]):
-            for m in range(members.shape[1]):
-                for a in range(3):
-                    grad[members[h, m], a] += weights[h, m] * hit_grad[h, a]
-    return value, grad, scale, counts
-
-
-@numba.njit(cache=True)
-def _cloud_knn(points, k, out_index, out_dist):
-    """The ``k`` nearest other points of every point of one cloud, sorted by distance, found
-    in a uniform grid of about two points per cell by searching rings of cells outwards until
-    no closer point can remain."""
-    n = points.shape[0]
-    lo = np.empty(3)
-    extent = np.empty(3)
-    for a in range(3):
-        lo[a] = points[:, a].min()
-        extent[a] = points[:, a].max() - lo[a]
-    floor = 1e-9 * max(extent.max(), 1e-300)
-    volume = max(extent[0], floor) * max(extent[1], floor) * max(extent[2], floor)
-    cell = max((volume / max(n / 2, 1)) ** (1.0 / 3.0), 1e-300)
-    dims = np.empty(3, dtype=np.int64)
-    while True:
-        for a in range(3):
-            dims[a] = min(int(extent[a] / cell) + 1, 1 << 20)
-        if dims[0] * dims[1] * dims[2] <= 4 * n + 64:
-            break
-        cell *= 1.26
-    cell_of = np.empty(n, dtype=np.int64)
-    counts = np.zeros(dims[0] * dims[1] * dims[2] + 1, dtype=np.int64)
-    for i in range(n):
-        c = 0
-        for a in range(3):
-            c = c * dims[a] + min(dims[a] - 1, int((points[i, a] - lo[a]) / cell))
-        cell_of[i] = c
-        counts[c + 1] += 1
-    start = np.cumsum(counts)
-    fill = start[:-1].copy()
-    order = np.empty(n, dtype=np.int64)
-    for i in range(n):
-        order[fill[cell_of[i]]] = i
-        fill[cell_of[i]] += 1
-    sorted_points = np.empty((n, 3))
-    for s in range(n):
-        for a in range(3):
-            sorted_points[s, a] = points[order[s], a]
-    best = np.empty(k)
-    home = np.empty(3, dtype=np.int64)
-    for query in range(n):  # in cell order, so that neighbouring queries read the same cells
-        i = order[query]
-        c = cell_of[i]
-        margin = np.inf
-        for a in range(2, -1, -1):
-            home[a] = c % dims[a]
-            c //= dims[a]
-            offset = points[i, a] - lo[a] - home[a] * cell
-            margin = min(margin, offset, cell - offset)
-        margin = max(margin, 0.0)
-        for m in range(k):
-            best[m] = np.inf
-            out_index[i, m] = -1
-        ring = 0
-        while True:
-            for x in range(max(home[0] - ring, 0), min(home[0] + ring, dims[0] - 1) + 1):
-                for y in range(max(home[1] - ring, 0), min(home[1] + ring, dims[1] - 1) + 1):
-                    on_shell = abs(x - home[0]) == ring or abs(y - home[1]) == ring
-                    for z in range(max(home[2] - ring, 0), min(home[2] + ring, dims[2] - 1) + 1):
-                        if not (on_shell or abs(z - home[2]) == ring):
-                            continue
-                        # Skip a cell that cannot hold a point closer than the k-th found so far.
-                        gap = 0.0
-                        for a, index in ((0, x), (1, y), (2, z)):
-                            below = lo[a] + index * cell - points[i, a]
-                            above = points[i, a] - lo[a] - (index + 1) * cell
-                            step = max(below, above, 0.0)
-                            gap += step * step
-                        if gap > best[k - 1]:
-                            continue
-                        c = (x * dims[1] + y) * dims[2] + z
-                        for s in range(start[c], start[c + 1]):
-                            d = 0.0
-                            for a in range(3):
-                                diff = sorted_points[s, a] - points[i, a]
-                                d += diff * diff
-                            j = order[s]
-                            if d < best[k - 1] and j != i:
-                                m = k - 1
-                                while m > 0 and best[m - 1] > d:
-                                    best[m] = best[m - 1]
-                                    out_index[i, m] = out_index[i, m - 1]
-                                    m -= 1
-                                best[m] = d
-                                out_index[i, m] = j
-            covered = ring >= dims[0] and ring >= dims[1] and ring >= dims[2]
-            reach = ring * cell + margin
-            if covered or (out_index[i, k - 1] >= 0 and best[k - 1] <= reach * reach):
-                break
-            ring += 1
-        for m in range(k):
-            out_dist[i, m] = math.sqrt(best[m])
-
-
-@numba.njit(cache=True)
-def _cloud_radius(points, index, dist, triplet, delta_factor, out):
-    """Cylinder radius ``delta`` of every point of one cloud from its ``k`` nearest neighbours:
-    ``delta_factor`` times the cloud's mean neighbour distance ``d_nei`` (one value for the
-    cloud), or for ``triplet`` the locally adaptive ``delta_factor`` times the mean pairwise
-    spacing of the point and its neighbours."""
-    n, k = index.shape
-    if not triplet:
-        total = 0.0
-        for i in range(n):
-            total += dist[i].sum() / k
-        out[:] = delta_factor * (total / n)
-        return
-    pairs = k * (k + 1) / 2
-    for i in range(n):
-        spacing = dist[i].sum()
-        for a in range(k):
-            for b in range(a + 1, k):
-                d = 0.0
-                for axis in range(3):
-                    diff = points[index[i, a], axis] - points[index[i, b], axis]
-                    d += diff * diff
-                spacing += math.sqrt(d)
-        out[i] = delta_factor * spacing / pairs
-
-
-@numba.njit(cache=True, parallel=True)
-def cloud_neighborhoods(points, point_offsets, k, triplet, delta_factor):
-    """The ``k`` nearest other points of every point and its cylinder radius, cloud by cloud
-    (clouds in parallel).
-
-    Args:
-        points: ``(N, 3)`` float64, the clouds back to back.
-        point_offsets: ``(C+1,)`` int64 point range of each cloud (each with more than ``k`` points).
-        k: neighbours per point.
-        triplet: radius of ``MODE_TRIPLET`` (per point) instead of the per-cloud ``delta``.
-        delta_factor: ``delta = delta_factor * d_nei`` (see :func:`_cloud_radius`).
-
-    Returns:
-        ``index (N, k)`` int64 cloud-local indices and ``dist (N, k)`` float64 Euclidean
-        distances, ascending (a point's own index is never among its neighbours, its duplicates
-        are), and ``radius (N,)`` float64.
-    """
-    index = np.empty((points.shape[0], k), dtype=np.int64)
-    dist = np.empty((points.shape[0], k))
-    radius = np.empty(points.shape[0])
-    for c in numba.prange(point_offsets.shape[0] - 1):
-        p0, p1 = point_offsets[c], point_offsets[c + 1]
-        _cloud_knn(points[p0:p1], k, index[p0:p1], dist[p0:p1])
-        _cloud_radius(points[p0:p1], index[p0:p1], dist[p0:p1], triplet, delta_factor, radius[p0:p1])
-    return index, dist, radius

@@ -46,32 +46,6 @@ def chunk_elements(device: torch.device) -> int:
     return _CHUNK_ELEMENTS.get(device.type, _CHUNK_ELEMENTS_OTHER)
 
 
-def masked_knn(points: torch.Tensor, valid: torch.Tensor, k: int) -> tuple[torch.Tensor, torch.Tensor]:
-    """The ``k`` nearest other valid points of every point, brute force in chunks of rows.
-
-    Args:
-        points: ``(B, N, 3)`` detached points.
-        valid: ``(B, N)`` bool, False for padding.
-        k: neighbours per point (every sample must have more than ``k`` valid points).
-
-    Returns:
-        ``idx (B, N, k)`` int64 and ``dist (B, N, k)`` Euclidean distances recomputed from the
-        gathered points (rows of padding points hold arbitrary valid indices).
-    """
-    batch, n = points.shape[:2]
-    rows = max(1, chunk_elements(points.device) // max(1, batch * n))
-    idx = torch.empty((batch, n, k), dtype=torch.int64, device=points.device)
-    column = torch.arange(n, device=points.device)
-    for r0 in range(0, n, rows):
-        r1 = min(n, r0 + rows)
-        dist = torch.cdist(points[:, r0:r1], points, compute_mode="donot_use_mm_for_euclid_dist")
-        dist = dist.masked_fill(~valid[:, None, :], torch.inf)
-        dist = dist.masked_fill(column[None, r0:r1, None] == column[None, None, :], torch.inf)
-        idx[:, r0:r1] = dist.topk(k, dim=-1, largest=False, sorted=True).indices
-    rows_b = torch.arange(batch, device=points.device)[:, None, None]
-    return idx, (points[rows_b, idx] - points[:, :, None]).norm(dim=-1)
-
-
 def _line_distance(points: torch.Tensor, origins: torch.Tensor, dirs: torch.Tensor, eps2: float) -> torch.Tensor:
     """``sqrt(max(|p - o|^2 - ((p - o) . u)^2, 0) + eps2)`` in the kernels' operation order."""
     rel = points - origins

@@ -20,7 +20,7 @@ coordinates of about 256 on (65504 is its largest value), and so would the loss 
 
 Convention: ``T_tgt_src`` maps source to target (``tgt ≈ R @ src + t``) for predictions and
 ground truth alike. References: Yew & Lee, CVPR 2020 (RPM-Net); Wang & Solomon, ICCV 2019
-(DCP); Huang, Mei & Zhang, CVPR 2020 (FMR); reference-notes §1.1-1.3.
+(DCP); Huang, Mei & Zhang, CVPR 2020 (FMR); and the training code each released with its paper.
 """
 
 from __future__ import annotations
@@ -150,8 +150,8 @@ def cycle_consistency(T_tgt_src: torch.Tensor, T_src_tgt: torch.Tensor) -> torch
     """DCP's cycle term: ``MSE(R_ba R_ab, I) + mean((R_ba t_ab + t_ba)^2)``.
 
     Both parts are read off ``T_ba @ T_ab``, which is the identity for a consistent pair.
-    (The notes record the original's translation part as ``R_ba^T t_ab + t_ba``, which is not
-    zero for a consistent pair unless ``t_ab = 0``; the composition is used here.)
+    (DCP's repository, ``main.py``, writes the translation part as ``R_ba^T t_ab + t_ba``, which
+    is not zero for a consistent pair unless ``t_ab = 0``; the composition is used here.)
 
     Args:
         T_tgt_src: tensor of shape ``(B, 4, 4)`` giving the forward estimates ``T_ab``.

@@ -21,7 +21,7 @@ import torch
 from torch import nn
 
 from linereg.checks import check_points, check_same_batch
-from linereg.pointcloud import knn, trimmed_chamfer_distance
+from linereg.knn import knn_points
 from linereg.procrustes import weighted_procrustes
 from linereg.se3 import transform_points
 from linereg.structures import PairBatch
@@ -233,29 +233,6 @@ def soft_correspondence_transform(
     return result.transform
 
 
-def best_fitting_iterate(
-    src: torch.Tensor, tgt: torch.Tensor, transforms: Sequence[torch.Tensor], keep_fraction: float = 1.0
-) -> tuple[torch.Tensor, torch.Tensor]:
-    """Per pair, the iterate whose moved source lies closest to the target, without labels.
-
-    Args:
-        src: tensor of shape ``(B, N, 3)`` giving the source clouds.
-        tgt: tensor of shape ``(B, M, 3)`` giving the target clouds.
-        transforms: ``I`` source -> target estimates of shape ``(B, 4, 4)``, one per iteration.
-        keep_fraction: share of each direction's nearest-neighbour distances kept by the fit
-            (:func:`linereg.pointcloud.trimmed_chamfer_distance`; 1 is the Chamfer distance).
-
-    Returns:
-        The kept estimates ``(B, 4, 4)`` (gradients flow through the kept ones) and the ``(B,)``
-        long index of each pair's kept iterate; ties keep the earliest.
-    """
-    with torch.no_grad():
-        fits = torch.stack([trimmed_chamfer_distance(transform_points(T, src), tgt, keep_fraction) for T in transforms])
-    kept = fits.argmin(0)
-    pairs = torch.arange(src.shape[0], device=src.device)
-    return torch.stack(list(transforms))[kept, pairs], kept
-
-
 def refine_translation(
     src: torch.Tensor,
     tgt: torch.Tensor,
@@ -270,7 +247,7 @@ def refine_translation(
     RPM-Net's soft assignment, when nearly uniform, turns weighted Procrustes into centroid
     alignment, whose translation is off by the distance between the centroids of a partial view
     and of the whole shape; these steps bring the translation back onto the surface
-    (``scripts/check_translation.py``). The nearest neighbours are not differentiable: the shift
+    (``docs/studies/translation-floor.md``). The nearest neighbours are not differentiable: the shift
     is a constant for autograd (gradients reach ``transform`` as if it were not refined).
 
     Args:
@@ -302,7 +279,7 @@ def refine_translation(
         shift = torch.zeros_like(moved[:, 0])
         for _ in range(iterations):
             shifted = moved + shift[:, None]
-            nearest = knn(shifted, tgt, 1).idx[..., 0]
+            nearest = knn_points(shifted, tgt, 1).idx[..., 0]
             matched = torch.gather(tgt, 1, nearest[..., None].expand(-1, -1, 3))
             shift = shift + (probabilities[..., None] * (matched - shifted)).sum(1)
     offset = torch.zeros_like(transform)

@@ -3,12 +3,14 @@
 DCP embeds both clouds point-wise (DGCNN on a static kNN graph, or PointNet), optionally lets
 each embedding attend to the other (DCP-v2's "pointer" transformer), matches every source point
 to a soft average of target points (softmax of scaled feature dot products) and fits the rigid
-transform with Procrustes (reference-notes §1.2). One iteration, so ``transforms`` has one entry.
+transform with Procrustes (the original: WangYueFt/dcp, ``model.py``). One iteration, so
+``transforms`` has one entry.
 
-Differences from the original: GroupNorm instead of BatchNorm by default (paper repository
-counts, reference-notes §0), kNN on the input's device, ``nn.LayerNorm`` (biased variance, eps
-inside the square root) instead of the original hand-written layer norm, and the rigid fit
-through :func:`linereg.procrustes.weighted_procrustes` (float64, never NaN).
+Differences from the original: GroupNorm instead of BatchNorm by default (the group counts of
+the paper's repository, Dengzhi-USTC/A-robust-registration-loss,
+``code/exps_deep_learning/dcp/model.py``), kNN on the input's device, ``nn.LayerNorm`` (biased
+variance, eps inside the square root) instead of the original hand-written layer norm, and the
+rigid fit through :func:`linereg.procrustes.weighted_procrustes` (float64, never NaN).
 """
 
 from __future__ import annotations
@@ -18,8 +20,8 @@ import math
 import torch
 from torch import nn
 
+from linereg.knn import knn_points
 from linereg.models.base import MODELS
-from linereg.pointcloud import knn
 from linereg.se3 import inverse
 from linereg.structures import PairBatch, RegistrationOutput
 
@@ -32,7 +34,7 @@ from .blocks import (
     soft_correspondence_transform,
 )
 
-# GroupNorm group counts of the paper repository (reference-notes §0).
+# GroupNorm group counts of the paper's repository (code/exps_deep_learning/dcp/model.py).
 DGCNN_GROUPS = (8, 8, 8, 16, 16)
 POINTNET_GROUPS = (8, 8, 8, 16, 16)
 DGCNN_EDGE_WIDTHS = (64, 64, 128, 256)
@@ -63,7 +65,7 @@ class DGCNNEmbedding(nn.Module):
         """Map points ``(B, N, 3)`` to features ``(B, emb_dims, N)``."""
         num_points = xyz.shape[1]
         with torch.no_grad():
-            idx = knn(xyz, xyz, min(self.k, num_points)).idx
+            idx = knn_points(xyz, xyz, min(self.k, num_points)).idx
         batch_index = torch.arange(xyz.shape[0], device=xyz.device)[:, None, None]
         neighbours = xyz[batch_index, idx]
         centres = xyz[:, :, None, :].expand_as(neighbours)

@@ -2,7 +2,9 @@
 
 A PointNet encoder maps a cloud to a global feature; the transform minimising the feature
 difference between the moved source and the target is found by an inverse-compositional
-Lucas-Kanade solver (reference-notes §1.3):
+Lucas-Kanade solver (the original: XiaoshuiHuang/fmr, ``model.py``; the paper's repository,
+Dengzhi-USTC/A-robust-registration-loss, ``code/exps_deep_learning/fmr/model.py``, replaces
+BatchNorm by GroupNorm with 8 groups):
 
 1. both clouds are zero-meaned; ``f0 = E(target)``;
 2. the feature Jacobian at the target comes from finite differences: for each twist direction
@@ -36,7 +38,7 @@ from linereg.models.base import MODELS
 from linereg.se3 import rt_to_matrix, se3_exp, transform_points
 from linereg.structures import PairBatch, RegistrationOutput
 
-from .blocks import NormKind, best_fitting_iterate, check_norm_kind, check_pair_batch, resolve_groups, shared_mlp
+from .blocks import NormKind, check_norm_kind, check_pair_batch, resolve_groups, shared_mlp
 
 ENCODER_WIDTHS = (64, 64, 64, 128)
 ENCODER_GROUPS = (8, 8, 8, 8, 8)
@@ -114,23 +116,16 @@ class FMR(nn.Module):
             to evaluation mode for the solver iterations) or ``"none"``.
         groups: one GroupNorm group count for every layer, or ``None`` for the paper
             repository's (8 everywhere).
-        keep_best_iterate: outside training, return as the last estimate, per pair, the
-            iterate whose moved source lies closest to the target
-            (:func:`linereg.models.blocks.best_fitting_iterate`; no label is used) instead of
-            the last iterate. ``False`` (the original) keeps the last.
-        fit_keep_fraction: share of each direction's nearest-neighbour distances that the
-            iterate's fit keeps, in ``(0, 1]``; 1 is the Chamfer distance.
 
     ``forward(batch)`` needs equal source and target point counts and returns a
     :class:`RegistrationOutput` with one ``(B, 4, 4)`` source -> target estimate per solver
-    iteration and ``extras``:
+    iteration (the caller picks one: :func:`linereg.registration.iterates.select_iterate`) and
+    ``extras``:
 
     * ``"reconstructions"``: list of ``(input (B, N, 3), decoded (B, P, 3))`` pairs, for the
       centred target and the centred source;
     * ``"feature_residual"``: ``(B, dim_k)`` feature difference ``E(g source) - f0`` at the last
-      iteration's starting estimate;
-    * ``"kept_iteration"`` (with ``keep_best_iterate``, outside training): ``(B,)`` index of the
-      iterate returned last.
+      iteration's starting estimate.
     """
 
     def __init__(
@@ -145,15 +140,11 @@ class FMR(nn.Module):
         tolerance: float = 1e-7,
         norm: NormKind = "group",
         groups: int | None = None,
-        keep_best_iterate: bool = False,
-        fit_keep_fraction: float = 1.0,
     ) -> None:
         super().__init__()
         check_norm_kind(norm)
         if train_iters < 1 or test_iters < 1:
             raise ValueError(f"train_iters and test_iters must be >= 1, got {train_iters} and {test_iters}")
-        if not 0.0 < fit_keep_fraction <= 1.0:
-            raise ValueError(f"fit_keep_fraction must be in (0, 1], got {fit_keep_fraction}")
         self.encoder = PointNetEncoder(dim_k, norm, resolve_groups(ENCODER_GROUPS, groups))
         self.decoder = (
             None
@@ -165,8 +156,6 @@ class FMR(nn.Module):
         self.test_iters = test_iters
         self.tolerance = tolerance
         self.freeze_encoder_statistics = norm == "batch"
-        self.keep_best_iterate = keep_best_iterate
-        self.fit_keep_fraction = fit_keep_fraction
 
     def _feature_jacobian(self, template: torch.Tensor, features: torch.Tensor) -> torch.Tensor:
         """Finite-difference Jacobian ``(B, dim_k, 6)`` of the features at ``template``."""
@@ -242,19 +231,13 @@ class FMR(nn.Module):
             if restore_training:
                 self.encoder.train()
         transforms = [uncentre @ g @ centre for g in transforms]
-        extras = {}
-        if self.keep_best_iterate and not self.training:
-            transforms[-1], extras["kept_iteration"] = best_fitting_iterate(
-                src, tgt, transforms, self.fit_keep_fraction
-            )
-
         reconstructions = []
         if self.decoder is not None:
             reconstructions = [
                 (tgt_centred, self.decoder(tgt_features)),
                 (src_centred, self.decoder(first_src_features)),
             ]
-        extras.update(reconstructions=reconstructions, feature_residual=residual)
+        extras = {"reconstructions": reconstructions, "feature_residual": residual}
         return RegistrationOutput(transforms=transforms, extras=extras)
 
 

@@ -1,13 +1,13 @@
 """RPM-Net (Yew & Lee, CVPR 2020): iterative soft matching with learned annealing.
 
-Per iteration (reference-notes §1.1): the source, moved by the previous estimate (detached),
-and the target are described by point-pair features (PPF) of their local neighbourhoods; a
-parameter network predicts the annealing parameters ``beta`` and ``alpha`` from both clouds;
-Sinkhorn normalisation with a slack row and column turns the feature distances into a partial
-assignment; weighted Procrustes maps the *original* source onto the assignment-weighted target
-points. Estimates are absolute (not composed); training runs 2 iterations, evaluation 5. The
-target never moves, so its features are computed once per forward (the original recomputed
-them every iteration; values and gradients are the same).
+Per iteration (the original: yewzijian/RPMNet, ``src/models/rpmnet.py``): the source, moved
+by the previous estimate (detached), and the target are described by point-pair features (PPF)
+of their local neighbourhoods; a parameter network predicts the annealing parameters ``beta``
+and ``alpha`` from both clouds; Sinkhorn normalisation with a slack row and column turns the
+feature distances into a partial assignment; weighted Procrustes maps the *original* source
+onto the assignment-weighted target points. Estimates are absolute (not composed); training
+runs 2 iterations, evaluation 5. The target never moves, so its features are computed once per
+forward (the original recomputed them every iteration; values and gradients are the same).
 
 Memory and speed. The PPF network's per-neighbour activations ``(B, N, K, 2 * feature_dim)``
 dominate RPM-Net's cost (:class:`PPFFeatures`). They are kept channels-last, so the 1x1
@@ -27,7 +27,7 @@ of centre points and never holds a per-neighbour tensor wider than the 10 raw ch
 Both paths agree up to rounding. In training, ``checkpoint=True`` recomputes the shared MLP
 during the backward pass instead of storing its activations (less memory, more compute).
 
-The neighbourhood is a ball query built on :func:`linereg.pointcloud.knn`: the ``K`` nearest
+The neighbourhood is a ball query built on :func:`linereg.knn.knn_points`: the ``K`` nearest
 points (the centre itself first), with every neighbour farther than ``radius`` replaced by the
 centre's own index. Unlike the original (the first ``K`` points in index order inside the
 ball), an over-full ball keeps its ``K`` *nearest* points.
@@ -42,14 +42,13 @@ import torch.nn.functional as F
 from torch import nn
 from torch.utils.checkpoint import checkpoint as recompute_in_backward
 
+from linereg.knn import knn_points
 from linereg.models.base import MODELS
-from linereg.pointcloud import knn
 from linereg.se3 import transform_normals, transform_points
 from linereg.structures import PairBatch, RegistrationOutput
 
 from .blocks import (
     NormKind,
-    best_fitting_iterate,
     check_pair_batch,
     make_norm,
     refine_translation,
@@ -58,7 +57,7 @@ from .blocks import (
     soft_correspondence_transform,
 )
 
-# Widths and GroupNorm counts of the original (reference-notes §0 and §1.1).
+# Widths and GroupNorm counts of the original (yewzijian/RPMNet, src/models/rpmnet.py and feature_nets.py).
 PREPOOL_HIDDEN = (96, 96)
 FEATURE_GROUPS = 8
 PARAM_POINTWISE_WIDTHS = (64, 64, 64, 128, 1024)
@@ -81,9 +80,10 @@ def ball_query(xyz: torch.Tensor, radius: float, num_neighbors: int) -> torch.Te
         (the centre itself included), slots of points outside the ball hold the centre's index.
     """
     with torch.no_grad():
-        found = knn(xyz, xyz, min(num_neighbors, xyz.shape[1]))
+        found = knn_points(xyz, xyz, min(num_neighbors, xyz.shape[1]), return_nn=True)
+        distances = (xyz[:, :, None] - found.knn).norm(dim=-1)
         centres = torch.arange(xyz.shape[1], device=xyz.device)[None, :, None]
-        return torch.where(found.dists <= radius, found.idx, centres)
+        return torch.where(distances <= radius, found.idx, centres)
 
 
 def _plane_norm(vectors: torch.Tensor) -> torch.Tensor:
@@ -376,28 +376,21 @@ class RPMNet(nn.Module):
         chunk_bytes: memory bound of the chunked feature network (see the module docstring).
         checkpoint: recompute the feature network's per-neighbour activations in the backward
             pass (saves most of the training memory for about a third more compute).
-        translation_refinement: outside training, nearest-neighbour translation steps applied to
-            the last estimate (:func:`linereg.models.blocks.refine_translation`, weighted by the
-            assignment's row mass; the rotation is kept). 0 (the original) disables them. A
+        translation_refinement: outside training, the number of nearest-neighbour translation
+            steps (:func:`linereg.models.blocks.refine_translation`, weighted by the last
+            assignment's row mass; the rotation is kept) applied to the last iterate, whose
+            refined copy is appended as one more estimate. 0 (the original) appends nothing. A
             nearly uniform assignment makes the translation that of centroid alignment, off by
             the offset between a partial view's centroid and the whole shape's
-            (``scripts/check_translation.py``).
-        keep_best_iterate: outside training, return as the last estimate, per pair, the iterate
-            whose moved source lies closest to the target
-            (:func:`linereg.models.blocks.best_fitting_iterate`; no label is used) instead of
-            the last iterate. ``False`` (the original) keeps the last. Iterations past the ones
-            a pair's motion needs can drift away from the solution (``scripts/check_iterations.py``).
-        fit_keep_fraction: share of each direction's nearest-neighbour distances that the
-            iterate's fit keeps, in ``(0, 1]``; 1 is the Chamfer distance.
+            (``docs/studies/translation-floor.md``).
 
     ``forward(batch)`` needs ``batch.src_normals`` and ``batch.tgt_normals`` and returns a
     :class:`RegistrationOutput` with one ``(B, 4, 4)`` source -> target estimate per iteration
-    and ``extras``:
+    (then the refined one, with ``translation_refinement``; the caller picks one:
+    :func:`linereg.registration.iterates.select_iterate`) and ``extras``:
 
     * ``"perm_matrices"``: list per iteration of ``(B, J, K)`` assignments (slack removed);
-    * ``"beta"``, ``"alpha"``: lists per iteration of ``(B,)`` annealing parameters;
-    * ``"kept_iteration"`` (with ``keep_best_iterate``, outside training): ``(B,)`` index of the
-      iterate returned last.
+    * ``"beta"``, ``"alpha"``: lists per iteration of ``(B,)`` annealing parameters.
     """
 
     def __init__(
@@ -415,16 +408,12 @@ class RPMNet(nn.Module):
         chunk_bytes: int = 4 * 2**20,
         checkpoint: bool = False,
         translation_refinement: int = 0,
-        keep_best_iterate: bool = False,
-        fit_keep_fraction: float = 1.0,
     ) -> None:
         super().__init__()
         if train_iters < 1 or test_iters < 1:
             raise ValueError(f"train_iters and test_iters must be >= 1, got {train_iters} and {test_iters}")
         if translation_refinement < 0:
             raise ValueError(f"translation_refinement must be >= 0, got {translation_refinement}")
-        if not 0.0 < fit_keep_fraction <= 1.0:
-            raise ValueError(f"fit_keep_fraction must be in (0, 1], got {fit_keep_fraction}")
         self.features = PPFFeatures(
             feature_dim,
             radius,
@@ -440,8 +429,6 @@ class RPMNet(nn.Module):
         self.sinkhorn_iters = sinkhorn_iters
         self.slack = slack
         self.translation_refinement = translation_refinement
-        self.keep_best_iterate = keep_best_iterate
-        self.fit_keep_fraction = fit_keep_fraction
 
     def forward(self, batch: PairBatch) -> RegistrationOutput:
         check_pair_batch(batch, "RPM-Net", needs_normals=True, dtype=next(self.parameters()).dtype)
@@ -464,15 +451,10 @@ class RPMNet(nn.Module):
             perm_matrices.append(perm)
             betas.append(beta)
             alphas.append(alpha)
-        extras = {"perm_matrices": perm_matrices, "beta": betas, "alpha": alphas}
-        kept_perm = perm_matrices[-1]
-        if self.keep_best_iterate and not self.training:
-            transforms[-1], kept = best_fitting_iterate(src, tgt, transforms, self.fit_keep_fraction)
-            kept_perm = torch.stack(perm_matrices)[kept, torch.arange(src.shape[0], device=src.device)]
-            extras["kept_iteration"] = kept
         if self.translation_refinement and not self.training:
-            mass = kept_perm.sum(-1)
-            transforms[-1] = refine_translation(src, tgt, transforms[-1], mass, self.translation_refinement)
+            mass = perm_matrices[-1].sum(-1)
+            transforms.append(refine_translation(src, tgt, transforms[-1], mass, self.translation_refinement))
+        extras = {"perm_matrices": perm_matrices, "beta": betas, "alpha": alphas}
         return RegistrationOutput(transforms=transforms, extras=extras)
 
 

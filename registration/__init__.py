@@ -3,19 +3,24 @@
 Every method is a callable ``method(src, tgt, src_normals=None, tgt_normals=None)`` on numpy
 clouds returning a :class:`MethodResult` (see :mod:`linereg.registration.methods`). The default of
 :func:`register` (also ``linereg.register``), ``robust`` (:mod:`linereg.registration.robust`), is
-numpy and scipy only; the torch solvers ``robust_adam``, ``adam_loss`` and ``svd_irls``
+numpy and scipy only, in one module per stage: pose sets (:mod:`~linereg.registration.poses`),
+the coarse CD-W stage (:mod:`~linereg.registration.coarse`), the Welsch polish
+(:mod:`~linereg.registration.welsch`), the pose search (:mod:`~linereg.registration.search`), the
+plane-to-plane steps (:mod:`~linereg.registration.planes`) and their settings
+(:mod:`~linereg.registration.robust_options`). The torch solvers ``adam_loss`` and ``svd_irls``
 (:mod:`linereg.registration.solvers`) and the classical baselines ``icp_point``, ``icp_plane``,
 ``fgr`` and ``fricp`` (:mod:`linereg.registration.baselines`) register in :data:`METHODS` when
 first needed (a name not yet registered, or a listing), so that importing this package does not
 import torch. :func:`register` runs any of them, or a trained network, on arrays, tensors,
-Open3D clouds or files.
+Open3D clouds or files, applies an initial guess (:func:`run_with_init`) and scores every result
+alike (:func:`~linereg.registration.evaluation.evaluate_registration`).
 """
 
 from typing import Any
 
 from linereg.registration import robust
 from linereg.registration.api import LearnedRegistration, RegistrationResult, register
-from linereg.registration.methods import METHODS, Method, MethodResult, run_centered
+from linereg.registration.methods import METHODS, Method, MethodResult, run_centered, run_with_init
 
 __all__ = [
     "METHODS",
@@ -27,6 +32,7 @@ __all__ = [
     "register",
     "robust",
     "run_centered",
+    "run_with_init",
     "solvers",
 ]
 

@@ -27,13 +27,13 @@ import numpy as np
 from linereg.checks import check_points, check_transform, is_tensor
 from linereg.fps import farthest_point_subset as fps
 from linereg.io import PointCloud, read_point_cloud
-from linereg.registration.methods import METHODS, MethodResult, run_centered
-from linereg.registration.robust import alignment_quality, point_spacing
+from linereg.registration.evaluation import evaluate_registration, point_spacing
+from linereg.registration.methods import METHODS, MethodResult, run_centered, run_with_init
 from linereg.registry import UnknownNameError
 
 DEFAULT_METHOD = "robust"
-GPU_METHOD = "robust_adam"
-"""The default's torch twin (Adam coarse stage), used by ``method="default"`` with a ``device`` other than the CPU."""
+QUALITY_POINTS = 2048
+"""FPS size of each cloud for ``fitness`` and ``inlier_rmse`` (:func:`quality`)."""
 _MIN_POINTS = 3
 
 
@@ -44,7 +44,8 @@ class RegistrationResult:
     Attributes:
         transformation: ``(4, 4)`` float64 transform mapping the source onto the target
             (``tgt ≈ R @ src + t``), the initial guess included.
-        fitness: fraction of source points with a target point within ``info["fitness_threshold"]``.
+        fitness: fraction of source points with a target point within ``info["fitness_threshold"]``
+            (Open3D's definition, :func:`~linereg.registration.evaluation.evaluate_registration`).
         inlier_rmse: RMS distance of those inlier points (0 without inliers).
         seconds: wall-clock time of the registration (reading files excluded).
         info: the method's details: ``method``, ``fitness_threshold``, and for the default solver
@@ -114,15 +115,18 @@ class LearnedRegistration:
 
     The clouds are centred, scaled together into the unit ball (the training data's scale),
     farthest-point sampled to the run's ``trainer.num_points``, given normals (estimated when
-    missing), and the model's final estimate is mapped back to the original frames.
+    missing); of the model's iterates, the one the run's ``iterate`` rule chooses
+    (:mod:`linereg.registration.iterates`, from the checkpoint's config) is mapped back to the
+    original frames.
 
     Args:
         checkpoint: a checkpoint file or a run folder (the checkpoint the run evaluated, else ``best.pt``).
         device: torch device of the model.
         num_points: points per cloud fed to the model (``None``: the run's ``trainer.num_points``).
         refine: also run the default solver from the model's estimate (a single start:
-            coarse CD-W, Welsch IRLS, the selection, escalating only when doubtful); a mapping
-            gives :class:`~linereg.registration.robust.RobustOptions` fields.
+            coarse CD-W, Welsch IRLS, the selection, escalating only when doubtful; numpy, on
+            the CPU whatever ``device``); a mapping gives
+            :class:`~linereg.registration.robust.RobustOptions` fields.
     """
 
     def __init__(
@@ -136,16 +140,17 @@ class LearnedRegistration:
         import torch
 
         from linereg.models import load_model
+        from linereg.registration.iterates import IterateRule
 
         self.model, state = load_model(checkpoint, device)
         self.device = torch.device(device)
         self.checkpoint = state["path"]
+        self.iterate = IterateRule.from_config(state["config"].get("iterate"))
         self.num_points = num_points or state["config"].get("trainer", {}).get("num_points") or 1024
         self.refiner = None
         if refine:
             options = {"starts": 1, **(dict(refine) if isinstance(refine, Mapping) else {})}
-            name = DEFAULT_METHOD if self.device.type == "cpu" else GPU_METHOD
-            self.refiner = METHODS.build({"name": name, "options": options, "device": str(self.device)})
+            self.refiner = METHODS.build({"name": DEFAULT_METHOD, "options": options})
 
     def _predict(self, src, tgt, src_normals, tgt_normals) -> MethodResult:
         import torch
@@ -164,19 +169,43 @@ class LearnedRegistration:
             tgt_normals=torch.from_numpy(normals[1]).float()[None],
         ).to(self.device)
         with torch.no_grad():
-            transform = self.model(batch).transform[0].double().cpu().numpy()
+            output = self.model(batch)
+            chosen, _ = self.iterate.select(output.transforms, batch.src_xyz, batch.tgt_xyz)
+        transform = chosen[0].double().cpu().numpy()
         transform[:3, 3] *= radius
         return MethodResult(transform=transform)
 
     def __call__(self, src, tgt, src_normals=None, tgt_normals=None) -> MethodResult:
         """Register ``src (N, 3)`` onto ``tgt (M, 3)`` (numpy); normals are re-estimated on the subsets."""
         predicted = run_centered(self._predict, src, tgt)
-        info: dict[str, Any] = {"checkpoint": self.checkpoint, "network_transform": predicted.transform.tolist()}
+        info: dict[str, Any] = {
+            "checkpoint": self.checkpoint,
+            "iterate": {"rule": self.iterate.rule, "keep_fraction": self.iterate.keep_fraction},
+            "network_transform": predicted.transform.tolist(),
+        }
         if self.refiner is None:
             return MethodResult(transform=predicted.transform, seconds=predicted.seconds, info=info)
-        refined = self.refiner(src, tgt, init=predicted.transform)
+        refined = run_with_init(self.refiner, src, tgt, init=predicted.transform)
         info.update(refined.info)
         return MethodResult(transform=refined.transform, seconds=predicted.seconds + refined.seconds, info=info)
+
+
+def quality(
+    src: np.ndarray, tgt: np.ndarray, transform: np.ndarray, fitness_threshold: float | None = None
+) -> dict[str, float]:
+    """``fitness``, ``inlier_rmse`` and ``fitness_threshold`` of ``transform (4, 4)`` mapping ``src``
+    onto ``tgt``, on FPS subsets of :data:`QUALITY_POINTS` points of each cloud, for every method.
+
+    Args:
+        src, tgt: ``(N, 3)`` and ``(M, 3)`` clouds.
+        transform: source-to-target transform.
+        fitness_threshold: inlier distance in input units (``None``: 3 times the target's median
+            point spacing).
+    """
+    src_fit, tgt_fit = fps(src, QUALITY_POINTS), fps(tgt, QUALITY_POINTS)
+    threshold = fitness_threshold or 3.0 * point_spacing(tgt_fit)
+    found = evaluate_registration(src_fit, tgt_fit, threshold, transform)
+    return {"fitness": found.fitness, "inlier_rmse": found.inlier_rmse, "fitness_threshold": threshold}
 
 
 def _build(method: Any, device: str | None, options: dict[str, Any]):
@@ -184,8 +213,7 @@ def _build(method: Any, device: str | None, options: dict[str, Any]):
     if isinstance(method, Mapping):
         config = {**method, **options}
     elif method == "default":
-        on_cpu = device is None or str(device) == "cpu"
-        config = {"name": DEFAULT_METHOD if on_cpu else GPU_METHOD, **options}
+        config = {"name": DEFAULT_METHOD, **options}
     elif isinstance(method, str) and method in METHODS:
         config = {"name": method, **options}
     elif isinstance(method, str | os.PathLike) and Path(method).expanduser().exists():
@@ -218,7 +246,7 @@ def register(
             point-cloud files (any format :func:`linereg.io.read_point_cloud` reads).
         init: optional ``(4, 4)`` initial guess (odometry, GNSS) applied to the source first;
             the result includes it.
-        method: ``"default"`` (the robust solver, ``robust``), any name in
+        method: ``"default"`` (the robust solver, ``robust``: CPU only), any name in
             :data:`linereg.registration.METHODS` (``adam_loss``, ``svd_irls``, ``icp_point``, ...),
             a config ``{name: ..., **options}``, or a checkpoint file / run folder of
             ``python -m train`` (the trained network; ``refine=True`` adds the solver).
@@ -242,21 +270,12 @@ def register(
     tgt, tgt_normals = as_cloud(target, "target")
     initial = _checked_init(init)
     solver, description = _build(method, device, options)
-    if initial is not None:
-        src = src @ initial[:3, :3].T + initial[:3, 3]
-        src_normals = None if src_normals is None else src_normals @ initial[:3, :3].T
     start = time.perf_counter()
-    result = solver(src, tgt, src_normals, tgt_normals)
+    result = run_with_init(solver, src, tgt, src_normals, tgt_normals, init=initial)
     seconds = time.perf_counter() - start
     transform = np.asarray(result.transform, dtype=np.float64)
-    info = {"method": description, **result.info}
-    if fitness_threshold is not None or "fitness" not in info:
-        tgt_fit = fps(tgt, 2048)
-        threshold = fitness_threshold or 3.0 * point_spacing(tgt_fit)
-        info.update(alignment_quality(fps(src, 2048), tgt_fit, transform, threshold))
-        info["fitness_threshold"] = threshold
+    info = {"method": description, **result.info, **quality(src, tgt, transform, fitness_threshold)}
     if initial is not None:
-        transform = transform @ initial
         info["init"] = initial.tolist()
     return RegistrationResult(
         transformation=transform,

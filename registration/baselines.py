@@ -4,7 +4,7 @@ Each is registered in :data:`linereg.registration.methods.METHODS` and built wit
 ``METHODS.build({"name": ..., **kwargs})``; the result is a callable
 ``method(src, tgt, src_normals=None, tgt_normals=None) -> MethodResult`` on numpy clouds.
 Every method runs through :func:`linereg.registration.methods.run_centered`: both clouds are translated to
-their centroids first (``center=True``, the fairness note) and the returned transform maps the
+their centroids first (``center=True``, as every method) and the returned transform maps the
 original source onto the original target (``tgt ≈ R @ src + t``).
 
 Distances are given relative to the target's *diameter* ``d``, the diagonal of its
@@ -89,7 +89,7 @@ def _open3d_icp(
     tolerance: float,
     tgt_normals: np.ndarray | None = None,
 ) -> MethodResult:
-    """Open3D ``registration_icp`` from the identity; fitness and inlier RMSE in ``info``."""
+    """Open3D ``registration_icp`` from the identity (:func:`linereg.register` scores the result)."""
     import open3d as o3d
 
     registration = o3d.pipelines.registration
@@ -103,8 +103,7 @@ def _open3d_icp(
             relative_fitness=tolerance, relative_rmse=tolerance, max_iteration=max_iterations
         ),
     )
-    info = {"fitness": float(result.fitness), "inlier_rmse": float(result.inlier_rmse)}
-    return MethodResult(transform=np.asarray(result.transformation, dtype=np.float64), info=info)
+    return MethodResult(transform=np.asarray(result.transformation, dtype=np.float64))
 
 
 @METHODS.register("icp_point")
@@ -245,8 +244,7 @@ class FastGlobalRegistration:
         result = registration.registration_fgr_based_on_feature_matching(
             src_cloud, tgt_cloud, src_features, tgt_features, option
         )
-        info = {"fitness": float(result.fitness), "inlier_rmse": float(result.inlier_rmse)}
-        return MethodResult(transform=np.asarray(result.transformation, dtype=np.float64), info=info)
+        return MethodResult(transform=np.asarray(result.transformation, dtype=np.float64))
 
 
 @METHODS.register("fricp")

@@ -6,9 +6,10 @@ baselines) is a callable ``method(src, tgt, src_normals=None, tgt_normals=None)`
 source onto the target (``tgt ≈ R @ src + t``). Build one with
 ``METHODS.build({"name": ..., **kwargs})``.
 
-Fairness (reference-notes §3c): by default every method sees both clouds translated to their
-centroids, and the translation is folded back into the returned transform, so methods that do
-not centre internally are not handicapped by the initial offset.
+Fairness: by default every method sees both clouds translated to their centroids
+(:func:`run_centered`), and the translation is folded back into the returned transform, so
+methods that do not centre internally are not handicapped by the initial offset. An initial
+guess is applied to the source in one place, :func:`run_with_init`, and is part of the result.
 """
 
 from __future__ import annotations
@@ -114,3 +115,25 @@ def run_centered(
     seconds = time.perf_counter() - start
     transform = translation(c_tgt) @ np.asarray(result.transform, dtype=np.float64) @ translation(-c_src)
     return MethodResult(transform=transform, seconds=seconds, info=result.info)
+
+
+def run_with_init(
+    method: Method,
+    src: np.ndarray,
+    tgt: np.ndarray,
+    src_normals: np.ndarray | None = None,
+    tgt_normals: np.ndarray | None = None,
+    init: np.ndarray | None = None,
+) -> MethodResult:
+    """Run ``method`` on the source moved by the initial guess ``init (4, 4)``.
+
+    The one place where an initial guess is applied: the method sees ``init @ src`` (and the
+    rotated normals) and the returned transform includes the guess, ``T = T_method @ init``.
+    """
+    if init is None:
+        return method(src, tgt, src_normals, tgt_normals)
+    moved = src @ init[:3, :3].T + init[:3, 3]
+    normals = None if src_normals is None else src_normals @ init[:3, :3].T
+    result = method(moved, tgt, normals, tgt_normals)
+    transform = np.asarray(result.transform, dtype=np.float64) @ init
+    return MethodResult(transform=transform, seconds=result.seconds, info=result.info)

@@ -322,7 +322,7 @@ def profile_table(args) -> None:
                 print(f"| {piece} | {ms:.2f} |")
 
 
-def main() -> None:
+def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--points", type=int, nargs="+", default=[1024, 5000, 10000, 100000])
     parser.add_argument("--lines", type=int, nargs="+", default=[5000, 15000, 20000])
@@ -336,7 +336,7 @@ def main() -> None:
     parser.add_argument("--profile", action="store_true", help="profile the calls of each row instead (one thread)")
     parser.add_argument("--json", action="store_true", help="print one JSON object per row instead of a table")
     parser.add_argument("--memory-probe", type=int, nargs=2, help=argparse.SUPPRESS)
-    args = parser.parse_args()
+    args = parser.parse_args(argv)
     if args.memory_probe:
         _memory_probe(*args.memory_probe, args.variant, args.backend)
         return

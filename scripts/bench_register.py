@@ -2,7 +2,7 @@
 
     python scripts/bench_register.py                 # 5 partial-vs-whole airplane pairs, 1024 vs 2048 points
     python scripts/bench_register.py --pairs 10 --commands 3 --json
-    python scripts/bench_register.py --previous '{"name": "robust", "options": {"rounds": 1}}'
+    python scripts/bench_register.py --compare '{"name": "robust", "options": {"rounds": 1}}'
 
 Pairs: :mod:`linereg.datasets.partial_vs_whole` on the ModelNet40 airplanes of the shared data (source a
 hidden-point-removal view of 1024 points, target 2048 points of the whole shape). In one run,
@@ -12,8 +12,8 @@ CPU-bound process spinning ("busy core"), it measures
 * the solver (``robust``, :class:`~linereg.registration.robust.RobustRegistration`, the
   ``register`` default, numpy) per pair, after a warm-up pair;
 * Open3D point-to-point ICP on the same pairs (the reference of the ratios);
-* another method on the same pairs (``--previous``, a method config; default ``robust_adam``, the
-  previous default in torch): a before/after ratio measured in the same run;
+* with ``--compare`` (a method config), another method on the same pairs: a ratio measured in the
+  same run;
 * the wall time of ``python -m train.register source=... target=...`` (start-up included), of
   ``python -c "import linereg.registration.api"`` (the library's start-up; the script fails if
   that import loads torch), and of ``python -c "import torch"`` (what a torch command pays first).
@@ -79,11 +79,10 @@ def _wall(command: list[str], cwd: Path, repeats: int) -> float:
 _TORCH_FREE = "import sys, linereg.registration.api; assert 'torch' not in sys.modules, 'torch was imported'"
 
 
-def measure(pairs, folder: Path, commands: int, previous: dict) -> dict[str, float]:
-    """One row: solver, ICP, previous method and command times (medians) and their ratios."""
+def measure(pairs, folder: Path, commands: int, compare: dict | None) -> dict[str, float]:
+    """One row: solver, ICP, compared method and command times (medians) and their ratios."""
     robust, robust_err = _solver_times(METHODS.build({"name": "robust"}), pairs)
     icp, icp_err = _solver_times(METHODS.build({"name": "icp_point"}), pairs)
-    before, before_err = _solver_times(METHODS.build(previous), pairs)
     register = [sys.executable, "-m", "train.register", "source=src.ply", "target=tgt.ply"]
     command = _wall(register, folder, commands)
     library = _wall([sys.executable, "-c", _TORCH_FREE], folder, commands)
@@ -97,12 +96,14 @@ def measure(pairs, folder: Path, commands: int, previous: dict) -> dict[str, flo
         "command_s": command,
         "import_api_s": library,
         "import_torch_s": floor,
-        "previous_s": statistics.median(before),
-        "previous_err_r_deg_median": float(np.median(before_err)),
     }
     row["solver_vs_icp"] = row["solver_s"] / row["icp_s"]
-    row["previous_vs_icp"] = row["previous_s"] / row["icp_s"]
     row["command_vs_import_torch"] = command / floor
+    if compare is not None:
+        other, other_err = _solver_times(METHODS.build(compare), pairs)
+        row["compared_s"] = statistics.median(other)
+        row["compared_err_r_deg_median"] = float(np.median(other_err))
+        row["compared_vs_icp"] = row["compared_s"] / row["icp_s"]
     return row
 
 
@@ -111,14 +112,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--pairs", type=int, default=5, help="timed pairs (one more is the warm-up)")
     parser.add_argument("--commands", type=int, default=3, help="runs of each command")
     parser.add_argument("--json", action="store_true")
-    parser.add_argument(
-        "--previous",
-        type=json.loads,
-        default={"name": "robust_adam"},
-        help="method config (JSON) to compare with (default: robust_adam, the previous default)",
-    )
+    parser.add_argument("--compare", type=json.loads, help='method config (JSON) to time beside, e.g. {"name": "fgr"}')
     args = parser.parse_args(argv)
-    METHODS.build(args.previous)  # a bad config fails here, before any timing
+    if args.compare is not None:
+        METHODS.build(args.compare)  # a bad config fails here, before any timing
     data = shared_data_dir()
     if data is None:
         parser.error("the shared data folder was not found (set $LINEREG_SHARED_DATA)")
@@ -130,11 +127,11 @@ def main(argv: list[str] | None = None) -> int:
         folder = Path(folder)
         write_point_cloud(folder / "src.ply", pairs[1].src_xyz)
         write_point_cloud(folder / "tgt.ply", pairs[1].tgt_xyz)
-        rows["quiet"] = measure(pairs, folder, args.commands, args.previous)
+        rows["quiet"] = measure(pairs, folder, args.commands, args.compare)
         spinner = multiprocessing.Process(target=_spin, daemon=True)
         spinner.start()
         try:
-            rows["busy core"] = measure(pairs, folder, args.commands, args.previous)
+            rows["busy core"] = measure(pairs, folder, args.commands, args.compare)
         finally:
             spinner.terminate()
             spinner.join()
@@ -155,14 +152,15 @@ def main(argv: list[str] | None = None) -> int:
             f"| {row['icp_s']:.3f} | {row['solver_vs_icp']:.0f}x | {row['command_s']:.2f} "
             f"| {row['import_api_s']:.2f} | {row['import_torch_s']:.2f} | {row['command_vs_import_torch']:.2f}x |"
         )
-    print(f"\nprevious method ({json.dumps(args.previous)}), same pairs:\n")
-    print("| machine | previous median (s) | median Err_R (deg) | previous / ICP | solver / previous |")
-    print("|---|---|---|---|---|")
-    for name, row in rows.items():
-        print(
-            f"| {name} | {row['previous_s']:.2f} | {row['previous_err_r_deg_median']:.3f} "
-            f"| {row['previous_vs_icp']:.0f}x | {row['solver_s'] / row['previous_s']:.2f}x |"
-        )
+    if args.compare is not None:
+        print(f"\ncompared method ({json.dumps(args.compare)}), same pairs:\n")
+        print("| machine | compared median (s) | median Err_R (deg) | compared / ICP | solver / compared |")
+        print("|---|---|---|---|---|")
+        for name, row in rows.items():
+            print(
+                f"| {name} | {row['compared_s']:.2f} | {row['compared_err_r_deg_median']:.3f} "
+                f"| {row['compared_vs_icp']:.0f}x | {row['solver_s'] / row['compared_s']:.2f}x |"
+            )
     busy = rows["busy core"]
     print(
         f"\nbusy core / quiet: solver {busy['solver_s_busy_vs_quiet']:.2f}x, "

@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
-# Reruns every experiment of docs/results.md: the paper's learning grids (Tables 3-5) with the
-# paper's settings (recipe=paper) at the CPU scale of configs/reproduce/, the classical baselines
+# Reruns the paper's learning grids (Tables 3-5) with the paper's settings (recipe=paper) at the
+# CPU scale of the protocols (configs/protocol/, configs/recipe_protocol/paper_*.yaml), the classical baselines
 # on the same test pairs, and the fine-tuning experiment; then writes the tables and figures
 # (scripts/reproduce_report.py).
 #
@@ -36,7 +36,7 @@ cell() {
   [[ -d $dir/checkpoints ]] && extra+=(resume=true)
   echo "run: $dir"
   local start=$SECONDS
-  "$PY" -m train "experiment=$experiment" "reproduce=$protocol" recipe=paper "seed=$seed" "${extra[@]}" "$@" \
+  "$PY" -m train "experiment=$experiment" "protocol=$protocol" recipe=paper "seed=$seed" "${extra[@]}" "$@" \
     "hydra.run.dir=$dir" >> "$dir.log" 2>&1 || { tail -20 "$dir.log"; exit 1; }
   echo $((SECONDS - start)) >> "$dir.seconds"  # wall-clock seconds of each (resumed) attempt
 }

@@ -58,13 +58,13 @@ def timed(command: list[str], log: Path) -> tuple[float, float]:
     return cpu, time.perf_counter() - start
 
 
-def main() -> None:
+def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--out", type=Path, default=ROOT / "outputs" / "make_train")
     parser.add_argument("--generate", metavar="CACHE_DIR", help=argparse.SUPPRESS)  # the first step's child
     parser.add_argument("overrides", nargs="*", help="Hydra overrides of the default (key=value)")
-    args = parser.parse_args()
+    args = parser.parse_args(argv)
     if args.generate:
         generate(args.generate, args.overrides)
         return
@@ -76,17 +76,30 @@ def main() -> None:
     os.environ.update(OMP_NUM_THREADS="1", NUMBA_NUM_THREADS="1")
     generation = timed([sys.executable, __file__, "--generate", str(cache), *args.overrides], run / "generate.log")
     training = timed(
-        [sys.executable, "-m", "train", f"seed={args.seed}", "trainer.threads=1", "trainer.progress=false",
-         f"paths.cache_dir={cache}", f"hydra.run.dir={run}", *args.overrides],
+        [
+            sys.executable,
+            "-m",
+            "train",
+            f"seed={args.seed}",
+            "trainer.threads=1",
+            "trainer.progress=false",
+            f"paths.cache_dir={cache}",
+            f"hydra.run.dir={run}",
+            *args.overrides,
+        ],
         run / "train.out",
     )
     metrics = json.loads((run / "metrics.json").read_text())["metrics"]
     records = map(json.loads, (run / "scalars.jsonl").read_text().splitlines())
     curve = [record["val/err_r_deg_mean"] for record in records if "val/err_r_deg_mean" in record]
-    print(f"CPU s (user + sys, one thread): generating the pairs {generation[0]:.0f}, training and evaluating "
-          f"{training[0]:.0f}, total {generation[0] + training[0]:.0f}; wall {generation[1] + training[1]:.0f} s")
-    print(f"test Err_R mean {metrics['test/err_r_deg_mean']:.2f}, median {metrics['test/err_r_deg_median']:.2f} deg "
-          f"(identity {metrics['test/identity/err_r_deg_mean']:.2f})")
+    print(
+        f"CPU s (user + sys, one thread): generating the pairs {generation[0]:.0f}, training and evaluating "
+        f"{training[0]:.0f}, total {generation[0] + training[0]:.0f}; wall {generation[1] + training[1]:.0f} s"
+    )
+    print(
+        f"test Err_R mean {metrics['test/err_r_deg_mean']:.2f}, median {metrics['test/err_r_deg_median']:.2f} deg "
+        f"(identity {metrics['test/identity/err_r_deg_mean']:.2f})"
+    )
     print("validation Err_R mean per epoch (first: before training):", ", ".join(f"{v:.2f}" for v in curve))
 
 

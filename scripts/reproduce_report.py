@@ -1,21 +1,36 @@
-"""Tables and figures of docs/results.md from the runs of scripts/reproduce.sh.
+"""Tables and figures of docs/results.md: per-seed cells, run folders, the schedule's table.
 
-    python scripts/reproduce_report.py [outputs/reproduce] [--docs docs/results]
+    python scripts/reproduce_report.py --cells docs/results/cells.csv --figures docs/results
+    python scripts/reproduce_report.py outputs/schedule --figures docs/results --write-cells docs/results/cells.csv
+    python scripts/reproduce_report.py outputs/reproduce            # tables of scripts/reproduce.sh's runs
     python scripts/reproduce_report.py outputs/schedule --schedule procedural
 
-Reads every ``<protocol>/<cell>_s<seed>/metrics.json`` (training runs), ``<protocol>/baselines/
-results.json`` (classical methods on the same test pairs) and ``real/rpm_gt_procedural_s*/
-metrics.json`` (a model evaluated without fine-tuning), and writes into ``--docs``:
+**Figures** (no run folder, or ``--figures``): one figure per protocol, ``<--figures>/<protocol>.png``
+(airplane, human, real): the test Err_R (degrees, log scale) of GT / CD / Ours and the controls
+(CD-W, the untrained network, the identity) of each backbone (RPM-Net, DCP, FMR), one dot per seed,
+a bar at their mean, the paper's number as a cross, for the cells of ``--recipe`` (default cpu).
+The cells come from the run folders when given (``<protocol>/<backbone>_<loss>_s<seed>/metrics.json``,
+as ``scripts/reproduce_schedule.sh`` names them; ``--write-cells`` merges them into a table),
+else from ``--cells`` (default ``docs/results/cells.csv``), one row per seed with the columns
+``protocol,backbone,loss,recipe,seed,err_r_deg,err_t,median_err_r_deg`` (Err_t: the mean l1
+translation error, in the pairs' units; an empty value is unknown; an identity row with an empty
+backbone is drawn for every backbone).
+
+**Tables** (a run folder without ``--figures``): reads every ``<protocol>/<cell>_s<seed>/metrics.json``
+(training runs), ``<protocol>/baselines/results.json`` (classical methods on the same test pairs)
+and ``real/rpm_gt_procedural_s*/metrics.json`` (a model evaluated without fine-tuning), and writes
+into ``--docs``:
 
 * ``tables.md``: per protocol, the paper-format table (means over the test pairs, averaged over
   seeds, ± the spread between seeds when there are several) beside the paper's numbers, the
   median Err_R and the wall-clock time of each cell;
 * ``curves_<protocol>.png``: validation Err_R during training (the scalars TensorBoard shows,
   read from each run's ``scalars.jsonl``), one panel per backbone;
-* ``figure_<protocol>_<cell>.png``: before/after views of the first test pair of a few runs;
+* ``figure_<protocol>_<cell>.png``: before/after views of the first test pair of the
+  ``--pair-figures`` cells;
 
-and replaces the text between ``<!-- tables:begin -->`` and ``<!-- tables:end -->`` in
-``--page`` (default ``docs/results.md``) with the tables. ``--schedule <protocol>`` instead prints
+and, with ``--page``, replaces the text between ``<!-- tables:begin -->`` and
+``<!-- tables:end -->`` in that page with the tables. ``--schedule <protocol>`` instead prints
 the table of scripts/reproduce_schedule.sh (every seed's Err_R, the CPU seconds of each cell) and
 writes nothing.
 """
@@ -23,6 +38,7 @@ writes nothing.
 from __future__ import annotations
 
 import argparse
+import csv
 import json
 import re
 import shutil
@@ -32,6 +48,7 @@ from pathlib import Path
 
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
+from matplotlib.ticker import FormatStrFormatter, LogLocator, NullFormatter
 
 # The paper's Tables 3-5: Err_R (deg), Err_t l1, l2 and Err_pw l1, l2 (x 10^-1).
 PAPER = {
@@ -84,6 +101,23 @@ ROW_ORDER = (
     + [f"{b}_{cell}" for b in ("dcp", "fmr", "rpm") for cell in ("pretrained", *FINE_TUNED)]
 )
 CELL = re.compile(r"(?P<cell>.+)_s(?P<seed>\d+)$")
+
+# The per-seed table of the figures (docs/results/cells.csv).
+CELL_COLUMNS = ("protocol", "backbone", "loss", "recipe", "seed", "err_r_deg", "err_t", "median_err_r_deg")
+FIGURE_PROTOCOLS = ("airplane", "human", "real")
+# Backbone of a run name's prefix (``rpm_ours_s0``), in the figures' order.
+BACKBONES = {"rpm": "rpmnet", "dcp": "dcp", "fmr": "fmr"}
+BACKBONE_NAMES = {"rpmnet": "RPM-Net", "dcp": "DCP", "fmr": "FMR"}
+# Losses in the figures' order: the three of the paper's tables, then the controls.
+LOSS_NAMES = {"gt": "GT", "cd": "CD", "ours": "Ours", "cdw": "CD-W", "untrained": "untrained", IDENTITY: "identity"}
+LOSS_COLOURS = {
+    "gt": "tab:green",
+    "cd": "tab:orange",
+    "ours": "tab:blue",
+    "cdw": "tab:purple",
+    "untrained": "tab:gray",
+    IDENTITY: "black",
+}
 
 
 def _runs(protocol_dir: Path) -> dict[str, list[Path]]:
@@ -256,56 +290,208 @@ def plot_curves(out: Path, protocol: str, path: Path) -> bool:
     return True
 
 
+def read_cells(path: Path) -> list[dict]:
+    """Rows of a per-seed table (:data:`CELL_COLUMNS`); empty values are ``None``, numbers floats."""
+    with path.open(newline="") as file:
+        reader = csv.DictReader(file)
+        if tuple(reader.fieldnames or ()) != CELL_COLUMNS:
+            raise ValueError(f"{path}: the header must be {','.join(CELL_COLUMNS)}, got {reader.fieldnames}")
+        rows = list(reader)
+    numbers = ("err_r_deg", "err_t", "median_err_r_deg")
+    cells = []
+    for line, row in enumerate(rows, start=2):
+        try:
+            cells.append(
+                {key: (float(value) if key in numbers else value) if value else None for key, value in row.items()}
+            )
+        except ValueError as error:
+            raise ValueError(f"{path}, line {line}: {error}") from None
+    return cells
+
+
+def run_cells(out: Path, recipe: str) -> list[dict]:
+    """Per-seed rows of the run folders ``out/<protocol>/<backbone>_<loss>_s<seed>`` (losses of
+    :data:`LOSS_NAMES`) and, per backbone, of the identity on its test pairs, labelled ``recipe``."""
+    rows = []
+    for protocol in FIGURE_PROTOCOLS:
+        if not (out / protocol).is_dir():
+            continue
+        identities = {}
+        for cell, runs in _runs(out / protocol).items():
+            prefix, _, loss = cell.partition("_")
+            if prefix not in BACKBONES or loss not in LOSS_NAMES or loss == IDENTITY:
+                continue
+            backbone = BACKBONES[prefix]
+            for run in runs:
+                seed = CELL.match(run.name)["seed"]
+                rows.append(_cell_row(protocol, backbone, loss, recipe, seed, _test_metrics(run)))
+                if backbone not in identities and _identity_metrics(run) is not None:
+                    identities[backbone] = _cell_row(protocol, backbone, IDENTITY, recipe, None, _identity_metrics(run))
+        rows += identities.values()
+    return rows
+
+
+def _cell_row(protocol: str, backbone: str, loss: str, recipe: str, seed: str | None, metrics: dict) -> dict:
+    """A row of :data:`CELL_COLUMNS` from test-split means (:func:`_test_metrics`)."""
+    return {
+        "protocol": protocol,
+        "backbone": backbone,
+        "loss": loss,
+        "recipe": recipe,
+        "seed": seed,
+        "err_r_deg": metrics["err_r_deg_mean"],
+        "err_t": metrics["err_t_l1_mean"],
+        "median_err_r_deg": metrics["err_r_deg_median"],
+    }
+
+
+def _cell_key(row: dict) -> tuple:
+    return tuple(row[column] for column in CELL_COLUMNS[:5])
+
+
+def _csv_value(value: str | float | None) -> str:
+    if value is None:
+        return ""
+    return f"{value:.4g}" if isinstance(value, float) else value
+
+
+def write_cells(path: Path, rows: list[dict]) -> None:
+    """Merge ``rows`` into the table at ``path`` (created if absent): a row replaces the one of the
+    same protocol, backbone, loss, recipe and seed; the others stay as they are, in their order."""
+    new = {_cell_key(row): [_csv_value(row[column]) for column in CELL_COLUMNS] for row in rows}
+    kept = []
+    if path.is_file():
+        read_cells(path)  # the header is checked
+        with path.open(newline="") as file:
+            kept = [line for line in list(csv.reader(file))[1:] if tuple(v or None for v in line[:5]) not in new]
+    with path.open("w", newline="") as file:
+        writer = csv.writer(file, lineterminator="\n")
+        writer.writerows([CELL_COLUMNS, *kept, *new.values()])
+
+
+def protocol_figure(cells: list[dict], protocol: str, recipe: str) -> Figure | None:
+    """Test Err_R of every loss of each backbone of one protocol: a dot per seed, a bar at the mean
+    and the paper's number as a cross, one axes per backbone; ``None`` when the table has no cell."""
+    rows = [r for r in cells if r["protocol"] == protocol and r["recipe"] == recipe and r["err_r_deg"] is not None]
+    backbones = [b for b in BACKBONE_NAMES if any(r["backbone"] == b for r in rows)]
+    if not backbones:
+        return None
+    fig = Figure(figsize=(3.4 * len(backbones), 3.6), layout="constrained")
+    FigureCanvasAgg(fig)
+    axes = fig.subplots(1, len(backbones), squeeze=False, sharey=True)[0]
+    prefix = {backbone: name for name, backbone in BACKBONES.items()}
+    for ax, backbone in zip(axes, backbones, strict=True):
+        mine = [r for r in rows if r["backbone"] in (backbone, None)]
+        losses = [loss for loss in LOSS_NAMES if any(r["loss"] == loss for r in mine)]
+        for x, loss in enumerate(losses):
+            values = [r["err_r_deg"] for r in mine if r["loss"] == loss]
+            spread = [0.0] if len(values) == 1 else [0.3 * (i / (len(values) - 1) - 0.5) for i in range(len(values))]
+            colour = LOSS_COLOURS[loss]
+            ax.scatter([x + d for d in spread], values, s=16, color=colour, zorder=3, gid=loss)
+            ax.hlines(statistics.fmean(values), x - 0.3, x + 0.3, color=colour, linewidth=2.5, alpha=0.6)
+            paper = PAPER.get(protocol, {}).get(f"{prefix[backbone]}_{loss}")
+            if paper is not None:
+                ax.scatter([x], [paper[0]], marker="x", s=40, color="black", zorder=4, gid="paper")
+        ax.set_xticks(range(len(losses)), [LOSS_NAMES[loss] for loss in losses], rotation=30, ha="right")
+        ax.set_yscale("log")
+        ax.yaxis.set_major_locator(LogLocator(subs=(1.0, 2.0, 3.0, 5.0)))
+        ax.yaxis.set_major_formatter(FormatStrFormatter("%g"))
+        ax.yaxis.set_minor_formatter(NullFormatter())
+        ax.set_title(BACKBONE_NAMES[backbone])
+        ax.grid(axis="y", which="both", alpha=0.3)
+    axes[0].set_ylabel("test Err_R (deg)")
+    fig.suptitle(f"{protocol.capitalize()}, recipe={recipe}: a dot per seed, a bar at their mean, x the paper")
+    return fig
+
+
+def draw_figures(cells: list[dict], folder: Path, recipe: str) -> list[Path]:
+    """Write ``folder/<protocol>.png`` for every protocol of :data:`FIGURE_PROTOCOLS` with cells."""
+    folder.mkdir(parents=True, exist_ok=True)
+    written = []
+    for protocol in FIGURE_PROTOCOLS:
+        fig = protocol_figure(cells, protocol, recipe)
+        if fig is not None:
+            fig.savefig(folder / f"{protocol}.png", dpi=110)
+            written.append(folder / f"{protocol}.png")
+    return written
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("out", nargs="?", default="outputs/reproduce", type=Path)
-    parser.add_argument("--docs", default="docs/results", type=Path)
-    parser.add_argument("--figures", nargs="*", default=["rpm_ours", "rpm_cd", "rpm_gt"])
-    parser.add_argument("--page", default="docs/results.md", type=Path)
+    parser.add_argument("out", nargs="?", type=Path, help="folder of run folders (default: figures from --cells)")
+    parser.add_argument("--cells", default="docs/results/cells.csv", type=Path, help="per-seed table to draw")
+    parser.add_argument("--figures", type=Path, help="folder of the per-protocol figures (default: docs/results)")
+    parser.add_argument("--recipe", default="cpu", choices=("cpu", "paper"), help="the recipe of the cells drawn")
+    parser.add_argument("--write-cells", type=Path, help="merge the run folders' cells into this table")
+    parser.add_argument("--docs", default="docs/results", type=Path, help="folder of tables.md and its figures")
+    parser.add_argument("--pair-figures", nargs="*", default=["rpm_ours", "rpm_cd", "rpm_gt"])
+    parser.add_argument("--page", type=Path, help="a page whose marked region receives the tables")
     parser.add_argument("--schedule", metavar="PROTOCOL", help="print the table of scripts/reproduce_schedule.sh")
     args = parser.parse_args(argv)
-    if not args.out.is_dir():
-        parser.error(f"{args.out} is not a folder (run scripts/reproduce.sh first)")
+    if args.out is not None and not args.out.is_dir():
+        parser.error(f"{args.out} is not a folder (run scripts/reproduce.sh or scripts/reproduce_schedule.sh first)")
     if args.schedule is not None:
-        if not (args.out / args.schedule).is_dir():
-            parser.error(f"{args.out / args.schedule} is not a folder (run scripts/reproduce_schedule.sh first)")
+        if args.out is None or not (args.out / args.schedule).is_dir():
+            parser.error(f"{args.out}/{args.schedule} is not a folder (run scripts/reproduce_schedule.sh first)")
         print(schedule_markdown(args.out, args.schedule), end="")
         return 0
-    args.docs.mkdir(parents=True, exist_ok=True)
+    if args.out is not None and args.figures is None and args.write_cells is None:
+        if args.page is not None and not args.page.is_file():
+            parser.error(f"--page {args.page} is not a file")
+        try:
+            return write_tables(args.out, args.docs, args.page, args.pair_figures)
+        except ValueError as error:  # a page without the marked region
+            parser.error(str(error))
+    if args.out is None and not args.cells.is_file():
+        parser.error(f"{args.cells} is not a file (give a folder of runs or --cells <table>)")
+    try:
+        cells = read_cells(args.cells) if args.out is None else run_cells(args.out, args.recipe)
+        if args.out is not None and args.write_cells is not None:
+            write_cells(args.write_cells, cells)
+    except ValueError as error:  # a table with another header or a value that is not a number
+        parser.error(str(error))
+    for path in draw_figures(cells, args.figures or Path("docs/results"), args.recipe):
+        print(path)
+    return 0
+
+
+def write_tables(out: Path, docs: Path, page: Path | None, pair_figures: list[str]) -> int:
+    """Tables mode: ``docs/tables.md``, the curves and pair views, and the marked region of ``page``."""
+    docs.mkdir(parents=True, exist_ok=True)
     sections = []
     for protocol in ("airplane", "human", "real"):
-        if not (args.out / protocol).is_dir():
+        if not (out / protocol).is_dir():
             continue
-        rows = protocol_rows(args.out, protocol)
+        rows = protocol_rows(out, protocol)
         if not rows:
             continue
         sections.append(f"### {protocol.capitalize()}\n\n{markdown(rows)}")
-        if plot_curves(args.out, protocol, args.docs / f"curves_{protocol}.png"):
-            curves = f"{args.docs.name}/curves_{protocol}.png"
+        if plot_curves(out, protocol, docs / f"curves_{protocol}.png"):
+            curves = f"curves_{protocol}.png"
             sections[-1] += f"\nValidation Err_R during training (first seed):\n\n![validation curves]({curves})\n"
-        for cell in args.figures:
-            figure = args.out / protocol / f"{cell}_s1" / "evaluation" / "figures" / "pair_0000.png"
+        for cell in pair_figures:
+            figure = out / protocol / f"{cell}_s1" / "evaluation" / "figures" / "pair_0000.png"
             if figure.is_file():
                 name = f"figure_{protocol}_{cell}.png"
-                shutil.copyfile(figure, args.docs / name)
-                sections[-1] += f"\n{cell}, first test pair:\n\n![{cell}]({args.docs.name}/{name})\n"
+                shutil.copyfile(figure, docs / name)
+                sections[-1] += f"\n{cell}, first test pair:\n\n![{cell}]({name})\n"
     text = "\n".join(sections)
-    (args.docs / "tables.md").write_text(text)
-    if args.page.is_file():
-        fill_page(args.page, text, args.docs.resolve().relative_to(args.page.parent.resolve()))
+    (docs / "tables.md").write_text(text)
+    if page is not None:
+        fill_page(page, text, docs.resolve().relative_to(page.parent.resolve()))
     print(text)
     return 0
 
 
 def fill_page(page: Path, tables: str, docs: Path) -> None:
-    """Replace the marked region of ``page`` with ``tables`` (figure links relative to the page)."""
+    """Replace the marked region of ``page`` with ``tables``, its figure links made relative to the page."""
     begin, end = "<!-- tables:begin -->", "<!-- tables:end -->"
     content = page.read_text()
     if begin not in content or end not in content:
         raise ValueError(f"{page} has no {begin} ... {end} region to fill")
     head, rest = content.split(begin, 1)
     tail = rest.split(end, 1)[1]
-    tables = re.sub(r"\]\([^/)]+/", f"]({docs.as_posix()}/", tables)
+    tables = re.sub(r"\]\(([^/)]+\.png)\)", rf"]({docs.as_posix()}/\1)", tables)
     page.write_text(f"{head}{begin}\n{tables}\n{end}{tail}")
 
 

@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# The one-schedule protocol of docs/results.md (issue #13): every loss of a backbone trained with
+# The one-schedule study of docs/results.md: every loss of a backbone trained with
 # the same schedule (Adam at 1e-3 with a cosine decay, one stage of easy poses for 4 epochs,
 # 256 points, the last checkpoint evaluated: no label chooses it), beside two controls, the
 # untrained network and the unsupervised regulariser alone; then the table of test errors.
@@ -13,10 +13,10 @@
 #   NUM_LINES=20000 OUT=outputs/schedule_l20k CELLS="dcp_cd dcp_ours" scripts/reproduce_schedule.sh
 #   EXTRA="loss.nu0=1.0" OUT=outputs/schedule_nu1 CELLS=rpm_ours scripts/reproduce_schedule.sh
 #
-# PROTOCOL: procedural (the embedded pairs, no download), airplane or human (configs/reproduce/,
+# PROTOCOL: procedural (the embedded pairs, no download), airplane, human or real (configs/protocol/,
 # the shared data). Cells are <backbone>_<loss> for rpm, dcp and fmr: untrained, reg, gt, cd,
 # ours (and rpm_ours_quick); <backbone>_ours_nu2 is the line loss with the Welsch scale factor
-# nu0 = 2 instead of the paper's 0.5 (issue #13). With INIT_FROM=<run of a supervised model of
+# nu0 = 2 instead of the paper's 0.5. With INIT_FROM=<run of a supervised model of
 # backbone b>, b_pretrained evaluates that model as it is, b_<cd|ours|ours_nu2>_finetuned
 # fine-tune it without labels (the Real protocol's fine-tuning study), and b_oracle_finetuned
 # fine-tunes it with the labels and b's supervised loss (the reference for the label-free cells).
@@ -42,15 +42,16 @@ NUM_LINES=${NUM_LINES:-5000}
 read -r -a EXTRA <<< "${EXTRA:-}"
 export OMP_NUM_THREADS=${OMP_NUM_THREADS:-1}
 
-# Everything the cells rely on is pinned here, so that changes of the embedded default
-# (configs/train.yaml) leave this study as it was run.
-# recipe.nu0=null: the paper's Welsch scale factor in every line-loss cell (the `_nu2` cells set
-# 2), whatever a protocol's recipe chooses (configs/reproduce/human.yaml).
+# Everything the cells rely on is pinned here, so that the CPU recipe's files (configs/recipe/cpu.yaml,
+# configs/recipe_*/cpu_*.yaml) leave this study as it is; only the scored iterate is the recipe's
+# (configs/recipe_cell/cpu_<protocol>_<model>.yaml).
+# loss.nu0=null: the paper's Welsch scale factor in every line-loss cell (the `_nu2` cells set
+# 2), whatever the recipe sets for a protocol (configs/recipe_cell_loss/cpu_human_*_ours.yaml).
 COMMON=(trainer.num_points=256 trainer.threads=1 trainer.progress=false trainer.log_term_grad_norms=false
-  trainer.evaluate_checkpoint=last optimizer=adam optimizer.lr=1e-3 scheduler=cosine curriculum=quick recipe.nu0=null)
+  trainer.evaluate_checkpoint=last optimizer=adam optimizer.lr=1e-3 scheduler=cosine curriculum=quick loss.nu0=null)
 case $PROTOCOL in
   procedural) COMMON+=(dataset=procedural) ;;
-  airplane | human | real) COMMON+=("reproduce=$PROTOCOL") ;;
+  airplane | human | real) COMMON+=("protocol=$PROTOCOL") ;;
   *) echo "unknown PROTOCOL $PROTOCOL (procedural, airplane, human, real)" >&2; exit 2 ;;
 esac
 # One stage: the easy variant (poses <= 15 deg, more overlap) of all training pairs, 4 epochs.
@@ -61,7 +62,7 @@ RPM=(model=rpmnet_cpu)
 DCP=(model=dcp_v2 model.emb_dims=256 model.ff_dims=512)
 FMR=(model=fmr)
 UNSUPERVISED_RPM=("loss.terms.outlier.weight=$RPM_OUTLIER_WEIGHT")
-# The paper's line loss with NUM_LINES lines (5000: the embedded default's when this study began).
+# The paper's line loss with NUM_LINES lines.
 LINES=("loss.num_lines=$NUM_LINES")
 NU2=(loss.nu0=2.0)
 

@@ -142,12 +142,51 @@ def test_bad_init_method_and_options_are_named(pair, tmp_path):
         linereg.register(tmp_path, tgt)
 
 
-def test_the_default_method_on_another_device_is_the_torch_twin():
+def test_the_default_method_runs_on_the_cpu_and_refuses_other_devices(pair):
     from linereg.registration.api import _build
     from linereg.registration.robust import RobustRegistration
-    from linereg.registration.solvers import AdamRobustRegistration
 
     assert isinstance(_build("default", None, {})[0], RobustRegistration)
     assert isinstance(_build("default", "cpu", {})[0], RobustRegistration)
-    solver, description = _build("default", "cuda", {})
-    assert isinstance(solver, AdamRobustRegistration) and description["name"] == "robust_adam"
+    with pytest.raises(ValueError, match="method=robust runs on the CPU; device=cuda is not supported"):
+        linereg.register(*pair[:2], device="cuda")
+
+
+def test_every_method_is_scored_by_one_quality_function(pair):
+    """Fitness and inlier RMSE come from evaluate_registration for every method, the init included."""
+    from linereg.registration.api import QUALITY_POINTS
+    from linereg.registration.evaluation import evaluate_registration
+
+    src, tgt, _ = pair
+    guess = pose([35.0, -15.0, 20.0], [0.15, -0.1, 0.0])
+    for result in (linereg.register(src, tgt, **FAST), linereg.register(src, tgt, init=guess, **FAST)):
+        assert len(src) <= QUALITY_POINTS
+        expected = evaluate_registration(src, tgt, result.info["fitness_threshold"], result.transformation)
+        assert result.fitness == pytest.approx(expected.fitness) and expected.correspondences > 0
+        assert result.inlier_rmse == pytest.approx(expected.inlier_rmse)
+
+
+def test_evaluate_registration_counts_inliers_as_open3d_does():
+    from linereg.registration.evaluation import evaluate_registration
+
+    src = np.array([[0.0, 0, 0], [1, 0, 0], [5, 0, 0]])
+    tgt = np.array([[0.0, 0.1, 0], [1, 0, 0.2]])
+    quality = evaluate_registration(src, tgt, 0.15)
+    assert quality.fitness == pytest.approx(1 / 3) and quality.correspondences == 1
+    assert quality.inlier_rmse == pytest.approx(0.1)
+    assert tuple(evaluate_registration(src, tgt, 0.01, np.eye(4))) == (0.0, 0.0, 0)
+
+
+def test_evaluate_registration_matches_open3d(pair):
+    o3d = pytest.importorskip("open3d")
+    from linereg.registration.evaluation import evaluate_registration
+
+    src, tgt, T = pair
+    noisy = T.copy()
+    noisy[:3, 3] += 0.01
+    clouds = [o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points)) for points in (src, tgt)]
+    for transform, distance in ((noisy, 0.02), (np.eye(4), 0.3)):
+        theirs = o3d.pipelines.registration.evaluate_registration(*clouds, distance, transform)
+        ours = evaluate_registration(src, tgt, distance, transform)
+        assert ours.fitness == pytest.approx(theirs.fitness) and ours.inlier_rmse == pytest.approx(theirs.inlier_rmse)
+        assert ours.correspondences == len(theirs.correspondence_set)

@@ -202,20 +202,20 @@ def test_config_runs_a_folder_of_pairs(tmp_path):
     with initialize_config_dir(config_dir=str(REPO_ROOT / "configs"), version_base="1.3"):
         config = compose(config_name="benchmark", overrides=[*overrides, f"out={out}", "progress=false"])
 
-    assert set(config.method_zoo) >= {"icp_point", "icp_plane", "fgr", "fricp"}
+    assert set(config.method_presets) >= {"icp_point", "icp_plane", "fgr", "fricp"}
     benchmark(OmegaConf.to_container(config, resolve=True))
 
     _check_folder_results(out, folder)
 
 
-def test_every_method_of_the_default_zoo_builds():
+def test_every_method_preset_builds():
     from hydra import compose, initialize_config_dir
 
     with initialize_config_dir(config_dir=str(REPO_ROOT / "configs"), version_base="1.3"):
         config = compose(config_name="benchmark", overrides=["benchmark=dragon"])
 
-    zoo = config.method_zoo
-    assert set(build_methods(list(zoo), zoo)) == set(zoo)
+    presets = config.method_presets
+    assert set(build_methods(list(presets), presets)) == set(presets)
     assert config.benchmark.name == "dragon" and config.pairs is None
 
 

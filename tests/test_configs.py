@@ -72,9 +72,9 @@ def test_default_is_the_label_free_easy_pose_recipe():
 
 
 @pytest.mark.parametrize("experiment", EXPERIMENTS)
-def test_recipe_cpu_replaces_the_schedule_of_experiments_and_grids(experiment):
-    """The default recipe=cpu (issue #13) wins over the experiment's and the scale's schedule; a
-    protocol adapts its stages (``cpu_recipe`` in configs/reproduce/)."""
+def test_recipe_cpu_sets_the_schedule_of_every_experiment_and_protocol(experiment):
+    """The default recipe=cpu sets the schedule of every experiment; a protocol adapts its stages
+    (configs/curriculum/cpu_<protocol>.yaml), a backbone or loss its own values (configs/recipe_*/)."""
     stages = {
         "": [("easy", 6, "easy")],
         "airplane": [("easy", 4, "easy")],
@@ -82,11 +82,11 @@ def test_recipe_cpu_replaces_the_schedule_of_experiments_and_grids(experiment):
         "real": [("easy", 4, "easy"), ("full", 4, None)],  # then the test pairs' frame gap
     }
     for protocol, expected in stages.items():
-        extra = [f"reproduce={protocol}"] if protocol else []
+        extra = [f"protocol={protocol}"] if protocol else []
         cfg = compose_config(overrides=[f"experiment={experiment}", *extra])
         curriculum = Curriculum.from_config(cfg.curriculum)
         if experiment.startswith("dcp") and protocol == "airplane":
-            expected = [("easy", 4, "easy"), ("full", 4, None)]  # DCP's own block, cpu_recipe.dcp_v2
+            expected = [("easy", 4, "easy"), ("full", 4, None)]  # configs/recipe_cell/cpu_airplane_dcp_v2.yaml
         assert [(s.name, s.epochs, s.variant) for s in curriculum.stages] == expected, protocol
         rates = [s.learning_rate(cfg.optimizer.lr) for s in curriculum.stages]
         assert all(s.subset is None for s in curriculum.stages) and rates == pytest.approx([1e-3] * len(rates))
@@ -100,53 +100,62 @@ def test_recipe_cpu_replaces_the_schedule_of_experiments_and_grids(experiment):
         if terms.get("alignment", {}).get("name") == "line_intersection":
             many = protocol == "human" or (protocol, experiment) == ("airplane", "dcp_ours")
             assert terms["alignment"]["num_lines"] == (20000 if many else 5000)
-        if experiment.startswith("rpm"):  # RPM-Net's own block: its best-fitting iterate, on every protocol
-            assert cfg.model.keep_best_iterate is bool(protocol)
+        if experiment.startswith("rpm"):  # RPM-Net scores its best-fitting iterate on every protocol
+            assert cfg.iterate.rule == ("best_fit" if protocol else "last")
             # Real's fit keeps 90 % of the distances (chosen on its training pairs), the others all
-            assert cfg.model.fit_keep_fraction == (0.9 if protocol == "real" else 1.0)
-        elif experiment.startswith("fmr"):  # FMR's, on Human and Real (its Airplane models were not re-measured)
-            assert cfg.model.keep_best_iterate is (protocol in ("human", "real")) and cfg.model.fit_keep_fraction == 1.0
+            assert cfg.iterate.keep_fraction == (0.9 if protocol == "real" else 1.0)
+        elif experiment.startswith("fmr"):  # FMR on Human and Real
+            assert cfg.iterate.rule == ("best_fit" if protocol in ("human", "real") else "last")
+            assert cfg.iterate.keep_fraction == 1.0
         else:
-            assert "keep_best_iterate" not in cfg.model
+            assert cfg.iterate.rule == "last"
+        assert "keep_best_iterate" not in cfg.model and "fit_keep_fraction" not in cfg.model
         build_components(cfg)
 
 
 @pytest.mark.parametrize("protocol", ["", "human", "real"])
 def test_optimizer_lr_sets_every_stage_of_the_recipe(protocol):
     """``optimizer.lr=1e-4`` (fine-tuning a trained model, docs/results.md) reaches both stages."""
-    extra = [f"reproduce={protocol}"] if protocol else []
+    extra = [f"protocol={protocol}"] if protocol else []
     cfg = compose_config(overrides=["experiment=rpm_ours", *extra, "optimizer.lr=1e-4"])
     rates = [s.learning_rate(cfg.optimizer.lr) for s in Curriculum.from_config(cfg.curriculum).stages]
     assert rates == pytest.approx([1e-4] * (1 if not protocol else 2))
 
 
-def test_recipe_values_are_overridable_and_reach_every_unsupervised_rpm_loss():
-    """``recipe.<key>=...`` changes the loss of every cell alike (fair comparisons, issue #13)."""
+@pytest.mark.parametrize("protocol", ["", "human"])
+def test_one_key_per_knob_reaches_the_loss_and_the_saved_config(protocol):
+    """``loss.num_lines``, ``loss.terms.outlier.weight`` and ``loss.nu0`` are the only keys of their
+    knobs: set on the command line they win over the recipe's files and show in the resolved config."""
+    extra = [f"protocol={protocol}"] if protocol else []
     for experiment in ("rpm_ours", "rpm_cd", "rpm_cdw"):
-        cfg = compose_config(overrides=[f"experiment={experiment}", "recipe.rpm_outlier_weight=1"])
+        cfg = compose_config(overrides=[f"experiment={experiment}", *extra, "loss.terms.outlier.weight=1"])
         assert build_loss(cfg.loss).weights["outlier"] == 1.0
-    cfg = compose_config(overrides=["experiment=fmr_ours", "recipe.num_lines=2000"])
-    assert build_loss(cfg.loss).parts["alignment"].options.num_lines == 2000
+    cfg = compose_config(overrides=["experiment=fmr_ours", *extra, "loss.num_lines=2000", "loss.nu0=1.5"])
+    options = build_loss(cfg.loss).parts["alignment"].options
+    assert (options.num_lines, options.nu0) == (2000, 1.5)
+    resolved = OmegaConf.to_container(cfg.loss, resolve=True)
+    assert resolved["num_lines"] == resolved["terms"]["alignment"]["num_lines"] == 2000
+    assert "num_lines" not in compose_config(overrides=["experiment=fmr_cd", *extra]).loss  # no such knob
 
 
 @pytest.mark.parametrize("experiment", EXPERIMENTS)
 def test_recipe_paper_keeps_the_experiments_schedule_and_checkpoint(experiment):
     """``recipe=paper`` is one switch back to the paper's settings, alone or at a grid's scale."""
-    for extra in ([], ["reproduce=airplane"]):
+    for extra in ([], ["protocol=airplane"]):
         cfg = compose_config(overrides=[f"experiment={experiment}", "recipe=paper", *extra])
         assert cfg.scheduler.name == "constant" and cfg.trainer.evaluate_checkpoint == "best"
         terms = OmegaConf.to_container(cfg.loss, resolve=True)["terms"]
         if "outlier" in terms:
             assert terms["outlier"]["weight"] == 10.0
-    human = compose_config(overrides=[f"experiment={experiment}", "recipe=paper", "reproduce=human"])
+    human = compose_config(overrides=[f"experiment={experiment}", "recipe=paper", "protocol=human"])
     paper = compose_config(overrides=[f"experiment={experiment}", "recipe=paper"])
-    assert "nu0" not in human.recipe and human.loss.nu0 == paper.loss.nu0  # Human's cpu_recipe stays out
+    assert human.loss.nu0 == paper.loss.nu0  # the CPU recipe's Human values stay out
     if not experiment.startswith("dcp"):
-        real = compose_config(overrides=[f"experiment={experiment}", "recipe=paper", "reproduce=real"])
-        assert not (human.model.keep_best_iterate or paper.model.keep_best_iterate or real.model.keep_best_iterate)
-        assert real.model.fit_keep_fraction == 1.0  # Real's trimmed fit stays out too
-    airplane = compose_config(overrides=[f"experiment={experiment}", "recipe=paper", "reproduce=airplane"])
-    grid = compose_config(overrides=["experiment=rpm_gt", "recipe=paper", "reproduce=airplane"])  # no block of its own
+        real = compose_config(overrides=[f"experiment={experiment}", "recipe=paper", "protocol=real"])
+        assert human.iterate.rule == paper.iterate.rule == real.iterate.rule == "last"
+        assert real.iterate.keep_fraction == 1.0  # Real's trimmed fit stays out too
+    airplane = compose_config(overrides=[f"experiment={experiment}", "recipe=paper", "protocol=airplane"])
+    grid = compose_config(overrides=["experiment=rpm_gt", "recipe=paper", "protocol=airplane"])  # no file of its own
     assert Curriculum.from_config(airplane.curriculum).stages == Curriculum.from_config(grid.curriculum).stages
     if experiment.endswith("_ours"):
         assert human.loss.num_lines == airplane.loss.num_lines == paper.loss.num_lines != 20000
@@ -164,7 +173,7 @@ def test_experiment_composes_and_builds(experiment):
     [("rpm_ours", 2e-6, 10000, 1.0), ("dcp_ours", 1e-5, 15000, 0.5), ("fmr_ours", 1e-5, 15000, 0.5)],
 )
 def test_experiment_values_win_over_train_yaml(experiment, lr, lines, radius):
-    """``_self_`` first in train.yaml: the experiment's values are the ones used (notes §0 #7)."""
+    """recipe=paper: each backbone's learning rate and the loss files' line settings are the ones used."""
     cfg = compose_config(overrides=[f"experiment={experiment}", "recipe=paper"])
     assert cfg.optimizer.lr == pytest.approx(lr)
     alignment = OmegaConf.to_container(cfg.loss, resolve=True)["terms"]["alignment"]
@@ -187,7 +196,8 @@ def test_paper_loss_weights():
 
 
 @pytest.mark.parametrize(
-    "group", ["model", "loss", "dataset", "curriculum", "optimizer", "scheduler", "logger", "debug", "recipe"]
+    "group",
+    ["model", "loss", "dataset", "curriculum", "optimizer", "scheduler", "logger", "debug", "recipe", "protocol"],
 )
 def test_every_group_option_composes(group):
     for option in sorted(p.stem for p in (CONFIGS / group).glob("*.yaml")):
@@ -296,39 +306,39 @@ def test_evaluate_config_composes_with_a_dataset():
     assert compose_config("evaluate", overrides=["checkpoint=x.pt"]).get("dataset") is None
 
 
-REPRODUCE = sorted(p.stem for p in (CONFIGS / "reproduce").glob("*.yaml"))
+PROTOCOLS = sorted(p.stem for p in (CONFIGS / "protocol").glob("*.yaml") if p.stem != "none")
 
 
-@pytest.mark.parametrize("reproduce", REPRODUCE)
+@pytest.mark.parametrize("protocol", PROTOCOLS)
 @pytest.mark.parametrize("experiment", ["rpm_ours", "dcp_cd", "fmr_gt"])
-def test_reproduce_scale_wins_over_the_experiment(reproduce, experiment):
-    """``reproduce=...`` (scripts/reproduce.sh) sets one scale for every cell of a table."""
-    cfg = compose_config(overrides=[f"experiment={experiment}", f"reproduce={reproduce}", "recipe=paper"])
+def test_paper_recipe_at_a_protocol_has_one_scale_for_every_experiment(protocol, experiment):
+    """``protocol=... recipe=paper`` (scripts/reproduce.sh) sets one scale for every cell of a table."""
+    cfg = compose_config(overrides=[f"experiment={experiment}", f"protocol={protocol}", "recipe=paper"])
     task_name = OmegaConf.to_container(cfg, resolve=False)["task_name"]
-    assert task_name == f"${{hydra:runtime.choices.experiment}}_{reproduce}"  # resolved in a Hydra run
+    assert task_name == f"${{hydra:runtime.choices.experiment}}_{protocol}"  # resolved in a Hydra run
     assert cfg.trainer.num_points == 256 and cfg.trainer.threads == 1 and cfg.trainer.device == "cpu"
     assert cfg.optimizer.lr == pytest.approx(1e-4)
-    full_epochs = {"human": 8, "real": 6}.get(reproduce, 2)  # the small training sets get more
+    full_epochs = {"human": 8, "real": 6}.get(protocol, 2)  # the small training sets get more
     assert [(s.name, s.epochs) for s in Curriculum.from_config(cfg.curriculum).stages] == [
         ("easy", 3), ("subset", 1), ("full", full_epochs)
     ]
     assert cfg.dataset.name == {"airplane": "modelnet40", "human": "mesh_folder", "real": "rgbd_sequence"}.get(
-        reproduce, "procedural"
+        protocol, "procedural"
     )
     build_components(cfg)
 
 
-def test_reproduce_splits_on_the_shared_data(shared_data):
+def test_protocol_splits_on_the_shared_data(shared_data):
     """Pair counts of docs/results.md: held-out shapes, held-out views, a split in time."""
     from linereg.datasets import build_dataset
 
     expected = {"airplane": (864, 216), "human": (120, 30), "real": (190, 40)}
-    for reproduce, counts in expected.items():
-        cfg = compose_config(overrides=["experiment=rpm_ours", f"reproduce={reproduce}"])
+    for protocol, counts in expected.items():
+        cfg = compose_config(overrides=["experiment=rpm_ours", f"protocol={protocol}"])
         dataset = OmegaConf.to_container(cfg.dataset, resolve=True)
         sizes = []
         for split in ("train", "test"):
             config = dataset_config(dataset, split)
             config.pop("cache_dir")
             sizes.append(len(build_dataset(config)))
-        assert tuple(sizes) == counts, reproduce
+        assert tuple(sizes) == counts, protocol

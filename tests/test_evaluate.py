@@ -51,6 +51,20 @@ def test_round_trip_matches_the_training_evaluation(trained_run, tmp_path):
     assert "| identity (no motion) |" in table and "alpha=0.05" in table
 
 
+def test_the_iterate_rule_is_the_runs_unless_overridden(trained_run, tmp_path):
+    run_dir, _ = trained_run
+    recorded = json.loads((run_dir / "metrics.json").read_text())["iterate"]
+    common = [f"checkpoint={run_dir}", "num_figures=0", "progress=false"]
+    own = evaluate(_compose("evaluate", [*common, f"output_dir={tmp_path}/own"]))
+    assert own["iterate"] == recorded == {"rule": "last", "keep_fraction": 1.0}
+    overridden = ["iterate.rule=best_fit", "iterate.keep_fraction=0.5", f"output_dir={tmp_path}/best"]
+    best = evaluate(_compose("evaluate", [*common, *overridden]))
+    assert best["iterate"] == {"rule": "best_fit", "keep_fraction": 0.5}
+    assert best["identity"] == own["identity"] and best["model"]["loss"] == own["model"]["loss"]
+    with pytest.raises(ValueError, match=r"iterate\.rule must be one of last, best_fit, got 'first'"):
+        evaluate(_compose("evaluate", [*common, "iterate.rule=first", f"output_dir={tmp_path}/bad"]))
+
+
 def test_evaluate_on_another_dataset_and_split(trained_run, tmp_path, capsys):
     run_dir, _ = trained_run
     cfg = _compose(
@@ -112,85 +126,6 @@ def test_benchmark_pairs_of_a_run_are_its_test_pairs(trained_run):
     assert len(run_pairs(run=str(run_dir), split="val", pairs=1)) == 1
     redrawn = run_pairs(run=str(run_dir), dataset_seed=7)  # other samples of the same pairs
     assert len(redrawn) == len(pairs) and not np.allclose(redrawn[0].src_xyz, pairs[0].src_xyz)
-
-
-def test_loss_at_gt_script_counts_pairs_per_loss(trained_run, capsys):
-    from scripts import loss_at_gt
-
-    run_dir, _ = trained_run
-    assert loss_at_gt.main([str(run_dir), "--lines", "500"]) == 0
-    rows = [line for line in capsys.readouterr().out.splitlines() if line.startswith("| ") and " of 2 |" in line]
-    assert len(rows) == 4 and rows[2].startswith("| chamfer (CD) |")
-
-
-def test_loss_minimum_script_rows_per_loss(trained_run, capsys):
-    from scripts import loss_minimum
-
-    run_dir, _ = trained_run
-    argv = [str(run_dir), "--lines", "300", "--nu0", "0.5", "2", "--iterations", "5"]
-    assert loss_minimum.main(argv) == 0
-    out = capsys.readouterr().out
-    assert out.startswith("2 test pairs of")
-    rows = [line.split(" | ") for line in out.splitlines() if line.startswith("| ") and "---" not in line]
-    assert [row[0] for row in rows[1:]] == [
-        "| chamfer (CD)",
-        "| line metric, 300 lines, nu0 = 0.5",
-        "| line metric, 300 lines, nu0 = 2",
-    ]
-    assert all(float(value) >= 0 for row in rows[1:] for value in row[1].split(" / "))
-    assert all(row[2].endswith(" of 2 pairs") and 0 <= int(row[2].split()[0]) <= 2 for row in rows[1:])
-
-
-def test_distance_to_minimum_returns_to_the_minimum_of_an_exact_copy():
-    """Chamfer between a cloud and its moved copy is 0 only at the true pose: Adam finds it from 4 deg off."""
-    from linereg.losses import build_loss
-    from linereg.registration.solvers import Stage
-    from linereg.se3 import se3_exp, transform_points
-    from scripts.loss_minimum import distance_to_minimum
-
-    generator = torch.Generator().manual_seed(0)
-    src = torch.rand(200, 3, generator=generator, dtype=torch.float64) - 0.5
-    gt = se3_exp(torch.tensor([[0.3, -0.2, 0.5, 0.1, 0.0, -0.1]], dtype=torch.float64))[0]
-    tgt = transform_points(gt, src)
-    off = se3_exp(torch.tensor([[0.05, 0.03, -0.04, 0.02, -0.01, 0.03]], dtype=torch.float64))[0] @ gt
-    stage = Stage(loss={}, iterations=300, lr=0.005)
-    chamfer = build_loss({"name": "chamfer"})
-    err_r, err_t = distance_to_minimum(chamfer, src, tgt, gt, Stage(loss={}, iterations=0, lr=0.005), start=off)
-    assert err_r > 3.5 and err_t > 0.05  # no iteration: the start itself
-    err_r, err_t = distance_to_minimum(chamfer, src, tgt, gt, stage, start=off)
-    assert err_r < 0.05 and err_t < 1e-3
-    assert distance_to_minimum(chamfer, src, tgt, gt, stage)[0] < 0.05  # from the ground truth it stays
-
-
-def test_check_iterations_script_rows_per_iteration_and_per_score(trained_run, capsys):
-    from scripts import check_iterations
-
-    run_dir, _ = trained_run
-    argv = [str(run_dir), "--iterations", "3", "--lines", "300", "--draws", "0", "1", "--keep-fractions", "1", "0.5"]
-    assert check_iterations.main(argv) == 0
-    out = capsys.readouterr().out
-    assert out.startswith("4 test pairs of")  # 2 pairs, 2 draws
-    rows = [line.split(" | ") for line in out.splitlines() if line.startswith("| ") and "---" not in line]
-    per_iteration = {row[0]: float(row[1]) for row in rows if "every pair" in row[0]}
-    # header, 3 iterations, the bound, 8 scores (4 losses, 2 trimmed fits, RPM-Net's 2 assignment fits)
-    assert len(per_iteration) == 3 and len(rows) == 1 + 3 + 1 + 4 + 2 + 2
-    kept = {row[0]: row[1:] for row in rows}
-    assert kept["| lowest trimmed Chamfer (keep 1) per pair"] == kept["| lowest chamfer (CD) per pair"]
-    assert "| lowest assignment-weighted Chamfer per pair" in kept
-    assert "| lowest Chamfer trimmed to the assignment's mass per pair" in kept
-    bound = float(next(row[1] for row in rows if "a bound" in row[0]))
-    assert bound <= min(per_iteration.values()) + 1e-9
-    assert all(bound <= float(row[1]) + 1e-9 for row in rows if row[0].startswith("| lowest"))
-
-
-def test_check_iterations_pads_a_solver_that_stopped_early():
-    """FMR may stop before ``test_iters``: its later rows repeat its last estimate's, so draws line up."""
-    from scripts.check_iterations import _repeat_last
-
-    rows = torch.tensor([[3.0, 1.0], [2.0, 4.0]])
-    padded = _repeat_last(rows, 4)
-    assert padded.shape == (4, 2) and torch.equal(padded[:2], rows) and torch.equal(padded[2:], rows[1:].expand(2, 2))
-    assert torch.equal(_repeat_last(rows, 2), rows)
 
 
 def test_report_of_unlabelled_data():

@@ -10,20 +10,12 @@ import numpy as np
 import pytest
 import torch
 
+from linereg.knn import knn_distances, knn_points
 from linereg.losses import line_kernels
-from linereg.losses.line_intersection import (
-    FusedLineValue,
-    LineMetricOptions,
-    _checked_inputs,
-    _fused_values,
-    _line_batch,
-    _line_pairs,
-    _numba_plan,
-    _stacked_points,
-    _torch_setups,
-    _values,
-    fused_path,
-)
+from linereg.losses.line_intersection import LineMetricOptions, _checked_inputs
+from linereg.losses.line_neighbors import cloud_neighborhoods
+from linereg.losses.line_pairs import line_pairs, numba_plan, resolve_lines, stacked_points, torch_setups
+from linereg.losses.line_value import FusedLineValue, fused_path, fused_values, line_values
 from linereg.se3 import transform_points
 from tests.test_line_backends import padded_pair
 from tests.test_line_intersection import blob, rigid
@@ -46,9 +38,9 @@ def both_paths(options, src, tgt, src_lengths=None, tgt_lengths=None):
         work = _checked_inputs(leaf, tgt, src_lengths, tgt_lengths, options)
         generator = torch.Generator().manual_seed(5)
         if fused:
-            value, stats = _fused_values(*work, options, generator, None)
+            value, stats = fused_values(*work, options, generator, None)
         else:
-            value, stats = _values(_line_pairs(*work, options, generator, None), options, work[0])
+            value, stats = line_values(line_pairs(*work, options, generator, None), options, work[0])
         value.sum().backward()
         results.append((value, stats, leaf.grad))
     return results
@@ -93,8 +85,8 @@ def test_fused_gradient_passes_gradcheck_for_a_fixed_plan(intersection):
     src = transform_points(rigid([6, -4, 3], [0.05, 0.0, -0.03]), blob(60, 8))[None]
     tgt = torch.stack([blob(70, 9)])
     work = _checked_inputs(src, tgt, None, None, options)
-    lines = _line_batch(*work, options, torch.Generator().manual_seed(1), None)
-    plan = _numba_plan(*work, lines, options)
+    lines = resolve_lines(*work, options, torch.Generator().manual_seed(1), None)
+    plan = numba_plan(*work, lines, options)
     assert len(plan.anchors) > 40
 
     def value(s, t):
@@ -109,7 +101,7 @@ def test_a_sample_without_kept_lines_is_zero_with_zero_gradient_on_the_fused_pat
     tgt = (blob(100, 11) + 50.0)[None]
     options = LineMetricOptions(num_lines=500, sampling="box_point_direction", backend="numba")
     work = _checked_inputs(src, tgt, None, None, options)
-    value, stats = _fused_values(*work, options, torch.Generator().manual_seed(0), None)
+    value, stats = fused_values(*work, options, torch.Generator().manual_seed(0), None)
     value.sum().backward()
     assert stats[0, 1] == 0 and value.item() == 0.0 and src.grad.abs().sum() == 0
 
@@ -136,7 +128,7 @@ def test_grid_knn_matches_brute_force_on_awkward_clouds():
     ]
     offsets = np.concatenate([[0], np.cumsum([len(c) for c in clouds])])
     for k in (1, 2, 3):
-        index, dist, _ = line_kernels.cloud_neighborhoods(np.concatenate(clouds), offsets, k, False, 1.0)
+        index, dist, _ = cloud_neighborhoods(np.concatenate(clouds), offsets, k, False, 1.0)
         for c, cloud in enumerate(clouds):
             ref_dist, ref_index, distinct = brute_force_knn(cloud, k)
             rows = slice(offsets[c], offsets[c + 1])
@@ -150,15 +142,26 @@ def test_grid_knn_matches_brute_force_on_awkward_clouds():
             np.testing.assert_array_equal(index[rows][distinct], ref_index[distinct])
 
 
+def test_grid_knn_matches_the_shared_knn():
+    clouds = [blob(3000, 13).numpy(), blob(40, 14).numpy()]  # the KD-tree and the dense path
+    offsets = np.concatenate([[0], np.cumsum([len(c) for c in clouds])])
+    index, dist, _ = cloud_neighborhoods(np.concatenate(clouds), offsets, 3, False, 1.0)
+    for c, cloud in enumerate(clouds):
+        points = torch.from_numpy(cloud)
+        rows = slice(offsets[c], offsets[c + 1])
+        np.testing.assert_array_equal(index[rows], knn_points(points, points, 3, exclude_self=True).idx.numpy())
+        np.testing.assert_allclose(dist[rows], knn_distances(points, points, 3, exclude_self=True).numpy(), rtol=1e-12)
+
+
 @pytest.mark.parametrize("intersection", ["convex", "triplet"])
 def test_compiled_radii_match_the_torch_backends(intersection):
     options = LineMetricOptions(intersection=intersection, k=3, delta_factor=0.7)
     src, tgt, src_lengths, tgt_lengths = padded_pair()
-    _, valids, radii, neighbors = _torch_setups(src, tgt, src_lengths, tgt_lengths, options)
+    _, valids, radii, neighbors = torch_setups(src, tgt, src_lengths, tgt_lengths, options)
     lengths = np.concatenate([src_lengths.numpy(), tgt_lengths.numpy()])
-    points = _stacked_points([src, tgt], lengths)
+    points = stacked_points([src, tgt], lengths)
     offsets = np.concatenate([[0], np.cumsum(lengths)])
-    index, _, radius = line_kernels.cloud_neighborhoods(points, offsets, 3, intersection == "triplet", 0.7)
+    index, _, radius = cloud_neighborhoods(points, offsets, 3, intersection == "triplet", 0.7)
     for side, valid in enumerate(valids):
         for b in range(2):
             rows = slice(offsets[2 * side + b], offsets[2 * side + b + 1])

@@ -48,9 +48,7 @@ def two_samples(mode):
     return clouds, line_sets, points, radius, neighbors
 
 
-@pytest.mark.parametrize(
-    "mode", [line_kernels.MODE_CANDIDATES, line_kernels.MODE_CONVEX, line_kernels.MODE_TRIPLET]
-)
+@pytest.mark.parametrize("mode", [line_kernels.MODE_CANDIDATES, line_kernels.MODE_CONVEX, line_kernels.MODE_TRIPLET])
 @pytest.mark.parametrize("cell_factor", [0.5, 4.0, 40.0])
 def test_grid_walk_finds_exactly_the_all_pairs_intersections(mode, cell_factor):
     _, line_sets, points, radius, neighbors = two_samples(mode)

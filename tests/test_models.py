@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import warnings
-from typing import ClassVar
 
 import pytest
 import torch
@@ -438,12 +437,10 @@ def test_overfits_a_single_pair(name):
     assert errors[-1] < 1.0, f"rotation error after training: {errors}"
 
 
-class TestRPMNetKeepBestIterate:
-    """``keep_best_iterate``: outside training, each pair's last estimate is its best-fitting iterate."""
+class TestIteratesAreReturnedUntouched:
+    """RPM-Net and FMR return every iterate; :func:`select_iterate` picks one without changing them."""
 
-    SMALL: ClassVar[dict] = {"name": "rpmnet", "feature_dim": 16, "num_neighbors": 8, "test_iters": 4}
-
-    def _pair(self) -> PairBatch:
+    def _rpmnet_pair(self) -> PairBatch:
         """Small motions (2 deg), on which the untrained network's iterates drift for some pairs."""
         generator = torch.Generator().manual_seed(1)
         src = torch.rand(3, 48, 3, generator=generator) - 0.5
@@ -452,71 +449,51 @@ class TestRPMNetKeepBestIterate:
         T = random_transform_paper(3, 2)
         return PairBatch(src, transform_points(T, src), normals, transform_normals(T, normals), gt_transform=T)
 
-    def _models(self, **options):
-        torch.manual_seed(0)
-        plain = MODELS.build(self.SMALL)
-        selecting = MODELS.build({**self.SMALL, "keep_best_iterate": True, **options})
-        selecting.load_state_dict(plain.state_dict())
-        return plain, selecting
+    def _fmr_pair(self) -> PairBatch:
+        generator = torch.Generator().manual_seed(1)
+        src = torch.rand(3, 48, 3, generator=generator) - 0.5
+        torch.manual_seed(1)
+        T = random_transform_paper(3, 10)
+        return PairBatch(src, transform_points(T, src), gt_transform=T)
 
-    @pytest.mark.parametrize("keep_fraction", [1.0, 0.5])
-    def test_returns_the_iterate_of_lowest_trimmed_chamfer(self, keep_fraction: float):
+    @pytest.mark.parametrize(
+        ("config", "keep_fraction"),
+        [
+            ({"name": "rpmnet", "feature_dim": 16, "num_neighbors": 8, "test_iters": 4}, 1.0),
+            ({"name": "rpmnet", "feature_dim": 16, "num_neighbors": 8, "test_iters": 4}, 0.5),
+            ({"name": "fmr", "dim_k": 32, "decoder_points": None, "test_iters": 5}, 1.0),
+        ],
+        ids=["rpmnet", "rpmnet-trimmed", "fmr"],
+    )
+    def test_best_fit_picks_an_earlier_iterate_and_leaves_the_list_alone(self, config, keep_fraction):
         from linereg.pointcloud import trimmed_chamfer_distance
+        from linereg.registration.iterates import select_iterate
 
-        batch = self._pair()
-        plain, selecting = self._models(fit_keep_fraction=keep_fraction)
+        batch = self._rpmnet_pair() if config["name"] == "rpmnet" else self._fmr_pair()
+        torch.manual_seed(0)
+        model = MODELS.build(config).eval()
         with torch.no_grad():
-            every = plain.eval()(batch)
-            kept = selecting.eval()(batch)
+            output = model(batch)
+        before = [T.clone() for T in output.transforms]
         src, tgt = batch.src_xyz, batch.tgt_xyz
-        fits = [trimmed_chamfer_distance(transform_points(T, src), tgt, keep_fraction) for T in every.transforms]
+        chosen, index = select_iterate(output.transforms, src, tgt, rule="best_fit", keep_fraction=keep_fraction)
+        fits = [trimmed_chamfer_distance(transform_points(T, src), tgt, keep_fraction) for T in before]
         expected = torch.stack(fits).argmin(0)
-        assert (expected < len(every.transforms) - 1).any()  # some pair keeps an earlier iterate
-        assert torch.equal(kept.extras["kept_iteration"], expected)
+        assert (expected < len(before) - 1).any()  # some pair is answered by an earlier iterate
+        assert torch.equal(index, expected)
         for pair, iteration in enumerate(expected.tolist()):
-            torch.testing.assert_close(kept.transforms[-1][pair], every.transforms[iteration][pair])
-        for earlier, same in zip(every.transforms[:-1], kept.transforms[:-1], strict=True):
-            torch.testing.assert_close(earlier, same)
+            torch.testing.assert_close(chosen[pair], before[iteration][pair])
+        assert len(output.transforms) == len(before)
+        for original, returned in zip(before, output.transforms, strict=True):
+            assert torch.equal(original, returned)
 
-    def test_training_keeps_every_iterate(self):
-        batch = self._pair()
-        plain, selecting = self._models()
-        torch.manual_seed(2)
-        trained = plain.train()(batch)
-        torch.manual_seed(2)
-        same = selecting.train()(batch)
-        assert "kept_iteration" not in same.extras and len(same.transforms) == plain.train_iters
-        for a, b in zip(trained.transforms, same.transforms, strict=True):
-            torch.testing.assert_close(a, b)
+    @pytest.mark.parametrize("name", ["rpmnet", "fmr"])
+    @pytest.mark.parametrize("switch", [{"keep_best_iterate": True}, {"fit_keep_fraction": 0.9}])
+    def test_the_models_take_no_iterate_switch(self, name, switch):
+        with pytest.raises(TypeError, match=next(iter(switch))):
+            MODELS.build({"name": name, **switch})
 
-    def test_bad_fraction_is_named(self):
-        with pytest.raises(ValueError, match="fit_keep_fraction must be in"):
-            MODELS.build({"name": "rpmnet", "keep_best_iterate": True, "fit_keep_fraction": 0.0})
-
-
-def test_fmr_keep_best_iterate_returns_the_iterate_of_lowest_chamfer():
-    """FMR's ``keep_best_iterate``, as RPM-Net's: an independent argmin, earlier iterates untouched."""
-    from linereg.pointcloud import trimmed_chamfer_distance
-
-    generator = torch.Generator().manual_seed(1)
-    src = torch.rand(3, 48, 3, generator=generator) - 0.5
-    torch.manual_seed(1)
-    T = random_transform_paper(3, 10)
-    batch = PairBatch(src, transform_points(T, src), gt_transform=T)
-    small = {"name": "fmr", "dim_k": 32, "decoder_points": None, "test_iters": 5}
-    torch.manual_seed(0)
-    plain = MODELS.build(small).eval()
-    selecting = MODELS.build({**small, "keep_best_iterate": True}).eval()
-    selecting.load_state_dict(plain.state_dict())
-    with torch.no_grad():
-        every, kept = plain(batch), selecting(batch)
-    fits = [trimmed_chamfer_distance(transform_points(T, src), batch.tgt_xyz) for T in every.transforms]
-    expected = torch.stack(fits).argmin(0)
-    assert (expected < len(every.transforms) - 1).any() and torch.equal(kept.extras["kept_iteration"], expected)
-    for pair, iteration in enumerate(expected.tolist()):
-        torch.testing.assert_close(kept.transforms[-1][pair], every.transforms[iteration][pair])
-    for earlier, same in zip(every.transforms[:-1], kept.transforms[:-1], strict=True):
-        torch.testing.assert_close(earlier, same)
-    assert "kept_iteration" not in selecting.train()(batch).extras
-    with pytest.raises(ValueError, match="fit_keep_fraction must be in"):
-        MODELS.build({**small, "fit_keep_fraction": 2.0})
+    def test_training_returns_every_iterate(self):
+        model = small_model("rpmnet").train()
+        output = model(self._rpmnet_pair())
+        assert len(output.transforms) == model.train_iters and "kept_iteration" not in output.extras

@@ -7,26 +7,16 @@ import pytest
 import torch
 
 from linereg.pointcloud import (
-    KNN,
-    _knn_indices_cdist,
     bounding_sphere,
     estimate_normals,
     farthest_point_sampling,
     fit_into_cube,
     hidden_point_removal,
-    knn,
     mean_neighbor_distance,
     resample_indices,
     trimmed_chamfer_distance,
     weighted_chamfer_distance,
 )
-
-
-def _knn_naive(query: torch.Tensor, reference: torch.Tensor, k: int) -> KNN:
-    """Brute force: all pairwise distances, sorted."""
-    dists = ((query[..., :, None, :] - reference[..., None, :, :]) ** 2).sum(-1).sqrt()
-    values, idx = dists.sort(dim=-1)
-    return KNN(values[..., :k], idx[..., :k])
 
 
 def _unit_sphere(num_points: int, seed: int = 0) -> np.ndarray:
@@ -37,88 +27,6 @@ def _unit_sphere(num_points: int, seed: int = 0) -> np.ndarray:
 def _lattice(size: int) -> np.ndarray:
     axis = np.arange(size, dtype=np.float64)
     return np.stack(np.meshgrid(axis, axis, axis, indexing="ij"), axis=-1).reshape(-1, 3)
-
-
-@pytest.mark.parametrize("batched", [True, False])
-def test_knn_matches_brute_force(batched: bool) -> None:
-    generator = torch.Generator().manual_seed(0)
-    shape_q, shape_r = ((3, 70, 3), (3, 90, 3)) if batched else ((70, 3), (90, 3))
-    query = torch.rand(shape_q, generator=generator, dtype=torch.float64)
-    reference = torch.rand(shape_r, generator=generator, dtype=torch.float64)
-    result = knn(query, reference, 6)
-    expected = _knn_naive(query, reference, 6)
-    assert result.idx.shape == (*shape_q[:-1], 6)
-    assert result.idx.dtype == torch.long
-    torch.testing.assert_close(result.idx, expected.idx, rtol=0, atol=0)
-    torch.testing.assert_close(result.dists, expected.dists)
-
-
-def test_knn_cdist_path_matches_kdtree() -> None:
-    generator = torch.Generator().manual_seed(1)
-    query = torch.rand(2, 300, 3, generator=generator, dtype=torch.float64)
-    reference = torch.rand(2, 200, 3, generator=generator, dtype=torch.float64)
-    torch.testing.assert_close(_knn_indices_cdist(query, reference, 5), knn(query, reference, 5).idx, rtol=0, atol=0)
-
-
-@pytest.mark.parametrize("rows_per_chunk", [7, 90])
-def test_knn_cdist_path_chunks(monkeypatch: pytest.MonkeyPatch, rows_per_chunk: int) -> None:
-    monkeypatch.setattr("linereg.pointcloud._CHUNK_BYTES", 8 * 50 * rows_per_chunk)
-    generator = torch.Generator().manual_seed(2)
-    query = torch.rand(3, 40, 3, generator=generator, dtype=torch.float64)
-    reference = torch.rand(3, 50, 3, generator=generator, dtype=torch.float64)
-    torch.testing.assert_close(
-        _knn_indices_cdist(query, reference, 4),
-        _knn_naive(query, reference, 4).idx,
-        rtol=0,
-        atol=0,
-    )
-
-
-def test_knn_exclude_self() -> None:
-    points = torch.rand(2, 60, 3, generator=torch.Generator().manual_seed(3), dtype=torch.float64)
-    result = knn(points, points, 4, exclude_self=True)
-    expected = _knn_naive(points, points, 5)
-    own = torch.arange(60)[None, :, None]
-    assert not (result.idx == own).any()
-    torch.testing.assert_close(result.idx, expected.idx[..., 1:], rtol=0, atol=0)
-    torch.testing.assert_close(result.dists, expected.dists[..., 1:])
-
-
-def test_knn_exclude_self_keeps_duplicates() -> None:
-    base = torch.rand(10, 3, generator=torch.Generator().manual_seed(4), dtype=torch.float64)
-    points = torch.cat([base] * 5)
-    result = knn(points, points, 2, exclude_self=True)
-    own = torch.arange(50)[:, None]
-    assert not (result.idx == own).any()
-    torch.testing.assert_close(result.dists, torch.zeros(50, 2, dtype=torch.float64))
-    assert ((result.idx % 10) == (own % 10)).all()
-
-
-def test_knn_gradients_reach_both_clouds() -> None:
-    generator = torch.Generator().manual_seed(5)
-    query = torch.rand(2, 20, 3, generator=generator, dtype=torch.float64, requires_grad=True)
-    reference = torch.rand(2, 30, 3, generator=generator, dtype=torch.float64, requires_grad=True)
-    torch.autograd.gradcheck(lambda q, r: knn(q, r, 3).dists, (query, reference))
-    knn(query, reference, 3).dists.sum().backward()
-    assert query.grad.abs().sum() > 0 and reference.grad.abs().sum() > 0
-
-
-def test_knn_errors() -> None:
-    points = torch.rand(2, 5, 3)
-    with pytest.raises(ValueError, match="k must be between 1 and 5"):
-        knn(points, points, 6)
-    with pytest.raises(ValueError, match="k must be between 1 and 4"):
-        knn(points, points, 5, exclude_self=True)
-    with pytest.raises(ValueError, match="k must be between"):
-        knn(points, points, 0)
-    with pytest.raises(ValueError, match="exclude_self=True requires query"):
-        knn(points, points + 1, 2, exclude_self=True)
-    with pytest.raises(ValueError, match="both be batched or both unbatched"):
-        knn(points, points[0], 2)
-    with pytest.raises(ValueError, match="batch size"):
-        knn(points, torch.rand(3, 5, 3), 2)
-    with pytest.raises(ValueError, match=r"query must have shape"):
-        knn(torch.rand(5, 2), torch.rand(5, 2), 1)
 
 
 def test_mean_neighbor_distance_unit_lattice() -> None:

@@ -4,12 +4,13 @@ from __future__ import annotations
 
 import warnings
 
+import numpy as np
 import pytest
 import roma
 import torch
 
 from linereg import procrustes, random_poses, se3
-from linereg.procrustes import procrustes_naive, weighted_procrustes
+from linereg.procrustes import procrustes_naive, weighted_procrustes, weighted_procrustes_numpy
 
 DTYPES = [torch.float32, torch.float64]
 TOL = {torch.float32: 1e-5, torch.float64: 1e-12}
@@ -93,6 +94,22 @@ class TestRecovery:
             atol=50 * TOL[dtype],
             rtol=0,
         )
+
+    @pytest.mark.parametrize("seed", [0, 1, 2])
+    def test_numpy_twin_matches_the_torch_solver_and_the_naive_one(self, seed):
+        """The numpy solver of the register default and the torch solver are twins: the same
+        transform on random weighted problems, and the identity where the weights sum to zero."""
+        src, tgt, _ = _problem(batch_size=5, num_points=40, seed=seed)
+        tgt = tgt + 0.05 * torch.randn(tgt.shape, generator=torch.Generator().manual_seed(seed), dtype=tgt.dtype)
+        weights = torch.rand(src.shape[:2], generator=torch.Generator().manual_seed(seed + 10), dtype=src.dtype)
+        weights[4] = 0.0
+        rotations, translations, valid = weighted_procrustes_numpy(src.numpy(), tgt.numpy(), weights.numpy())
+        expected = _solve_quietly(src[:4], tgt[:4], weights[:4]).transform
+        torch.testing.assert_close(torch.from_numpy(rotations[:4]), expected[:, :3, :3], atol=1e-9, rtol=0)
+        torch.testing.assert_close(torch.from_numpy(translations[:4]), expected[:, :3, 3], atol=1e-9, rtol=0)
+        torch.testing.assert_close(expected, procrustes_naive(src[:4], tgt[:4], weights[:4]), atol=1e-9, rtol=0)
+        assert valid.tolist() == [True] * 4 + [False]
+        assert (rotations[4] == np.eye(3)).all() and (translations[4] == 0).all()
 
     def test_coplanar_points_give_exact_proper_rotation(self):
         src, _, T = _problem()

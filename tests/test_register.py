@@ -268,9 +268,10 @@ def _repo_env() -> dict[str, str]:
     return env
 
 
-def test_the_robust_solver_runs_in_numpy_on_the_cpu_and_its_torch_twin_elsewhere():
+def test_the_robust_solver_runs_in_numpy_on_the_cpu_and_refuses_other_devices(tmp_path):
     assert method_config(_compose(source="a", target="b")) == {"name": "robust", "options": {}, "num_points": 2048}
-    on_gpu = method_config(_compose(source="a", target="b", device="cuda", threads=2))
-    assert on_gpu["name"] == "robust_adam" and on_gpu["device"] == "cuda" and on_gpu["threads"] == 2
-    with pytest.raises(RegisterError, match="threads=2: the robust solver on the CPU is numpy"):
-        method_config(_compose(source="a", target="b", threads=2))
+    write_point_cloud(tmp_path / "a.ply", surface(100, 4))
+    on_gpu = _compose(source=tmp_path / "a.ply", target=tmp_path / "a.ply", device="cuda")
+    with pytest.raises(RegisterError, match="method=robust runs on the CPU; device=cuda is not supported"):
+        register_files(on_gpu, tmp_path / "run")
+    assert not (tmp_path / "run").exists()

@@ -58,7 +58,7 @@ def test_every_cell_composes_with_one_schedule(protocol):
             assert alignment.name == "line_intersection" and alignment.weight == (0 if loss == "reg" else 1)
             assert cfg.loss.num_lines == 5000
             assert cfg.loss.nu0 == (2.0 if loss == "ours_nu2" else None)  # None: the paper's 0.5
-        if backbone == "rpm" and loss != "gt":  # pinned: not the recipe's 0.3 (configs/recipe/cpu.yaml)
+        if backbone == "rpm" and loss != "gt":  # pinned: not the recipe's 0.3 (configs/recipe_loss/cpu_rpm_*.yaml)
             assert cfg.loss.terms.outlier.weight == 1
         if backbone == "dcp":
             assert cfg.model.emb_dims == 256 and cfg.model.ff_dims == 512
@@ -150,14 +150,14 @@ def test_schedule_table(tmp_path, capsys):
         reproduce_report.main([str(out), "--schedule", "airplane"])
 
 
-# What each protocol's measured cells add to the schedule's environment (docs/results.md,
-# sessions 10-14); on Human the measured line-loss cells are the `_nu2` ones.
+# What each protocol's measured cells add to the schedule's environment (docs/results.md); on
+# Human the measured line-loss cells are the `_nu2` ones.
 MEASURED_ENV = {
     "airplane": {"EXTRA": ""},
     "human": {"EXTRA": "curriculum.stages.full.epochs=4 curriculum.stages.full.lr_scale=1.0", "NUM_LINES": "20000"},
     "real": {"EXTRA": "curriculum.stages.full.epochs=4 curriculum.stages.full.lr_scale=1.0"},
 }
-# A backbone's own block of a protocol's recipe (cpu_recipe.<model.name>; docs/results.md, session 16).
+# A backbone's own file of a protocol's recipe (configs/recipe_cell/cpu_airplane_dcp_v2.yaml).
 MEASURED_ENV_OF_BACKBONE = {
     ("airplane", "dcp"): {"EXTRA": MEASURED_ENV["human"]["EXTRA"], "NUM_LINES": "20000"},  # Human's full-range stage
 }
@@ -165,7 +165,7 @@ SIZES = {"rpm": ["model=rpmnet_cpu"], "dcp": ["model.emb_dims=256", "model.ff_di
 
 
 def _training(cfg) -> dict:
-    """What a run trains with: stages, rates, loss terms, model, data, points, batch, checkpoint."""
+    """What a run trains with: stages, rates, loss terms, model, data, points, batch, checkpoint, iterate."""
     curriculum = Curriculum.from_config(cfg.curriculum)
     stages = [(s.epochs, s.subset, s.variant, s.learning_rate(cfg.optimizer.lr)) for s in curriculum.stages]
     return {
@@ -176,18 +176,19 @@ def _training(cfg) -> dict:
         "model": OmegaConf.to_container(cfg.model, resolve=True),
         "dataset": OmegaConf.to_container(cfg.dataset, resolve=True),
         "trainer": {key: cfg.trainer[key] for key in ("num_points", "batch_size", "evaluate_checkpoint")},
+        "iterate": OmegaConf.to_container(cfg.iterate),
     }
 
 
 @pytest.mark.parametrize("protocol", list(MEASURED_ENV))
 @pytest.mark.parametrize("cell", ["rpm_gt", "rpm_cd", "rpm_ours", "dcp_cd", "dcp_ours", "fmr_gt", "fmr_cd", "fmr_ours"])
 def test_experiment_under_the_recipe_trains_the_measured_cell(protocol, cell):
-    """Issue #13 item 5: `python -m train experiment=<cell> reproduce=<protocol>` (the default
-    recipe=cpu, at the grid's backbone sizes) trains what the schedule's cell measured."""
+    """`python -m train experiment=<cell> protocol=<protocol>` (the default recipe=cpu, at the
+    grid's backbone sizes) trains what the schedule's cell measured."""
     measured_cell = f"{cell}_nu2" if protocol == "human" and cell.endswith("_ours") else cell
     env = MEASURED_ENV_OF_BACKBONE.get((protocol, cell.split("_")[0]), MEASURED_ENV[protocol])
     result = dry_run(protocol, [measured_cell], RPM_OUTLIER_WEIGHT="0.3", **env)
     assert result.returncode == 0, result.stderr
     schedule = compose_config(overrides=result.stdout.split()[2:])
-    experiment = compose_config(overrides=[f"experiment={cell}", f"reproduce={protocol}", *SIZES[cell.split("_")[0]]])
+    experiment = compose_config(overrides=[f"experiment={cell}", f"protocol={protocol}", *SIZES[cell.split("_")[0]]])
     assert _training(experiment) == _training(schedule)

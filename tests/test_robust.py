@@ -1,7 +1,8 @@
-"""The ``register`` default, :class:`linereg.registration.robust.RobustRegistration` (numpy), and its parts."""
+"""The ``register`` default, :class:`linereg.registration.robust.RobustRegistration` (numpy), and its stages."""
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
 import math
 import subprocess
@@ -10,42 +11,49 @@ import sys
 import numpy as np
 import pytest
 import torch
-from scipy.spatial import cKDTree
 
+import linereg
+from linereg.knn import NearestNeighbors
 from linereg.losses.chamfer import chamfer_welsch_distance
 from linereg.paths import REPO_ROOT
-from linereg.procrustes import weighted_procrustes as torch_procrustes
 from linereg.registration import METHODS
-from linereg.registration.robust import (
-    RobustOptions,
-    RobustRegistration,
-    alignment_quality,
+from linereg.registration.coarse import cdw_adam, cdw_gradient, cdw_irls, cdw_value
+from linereg.registration.evaluation import point_spacing
+from linereg.registration.methods import run_with_init
+from linereg.registration.planes import pca_normals, plane_to_plane_irls, surface_covariances
+from linereg.registration.poses import (
     axis_rotations,
-    cdw_adam,
-    cdw_gradient,
-    cdw_irls,
-    cdw_value,
     cross_matrices,
     cube_rotations,
-    degeneracy,
     distinct_best,
-    fine_scales,
-    fixed_scale_cost,
-    pca_normals,
-    plane_to_plane_irls,
-    point_spacing,
-    polish_scales,
-    pose_search,
     rodrigues,
     rotation_gap_deg,
     spread_rotations,
-    surface_covariances,
-    weighted_procrustes,
-    welsch_irls,
 )
+from linereg.registration.robust import degeneracy, doubt
+from linereg.registration.robust_options import FLAT_KEYS, PolishOptions, RobustOptions
+from linereg.registration.search import pose_search
 from linereg.registration.solvers import start_poses
-from linereg.se3 import se3_exp
-from tests.test_solvers_robust import apply, pose, surface
+from linereg.registration.welsch import fine_scales, fixed_scale_cost, polish_scales, welsch_irls
+from linereg.se3 import euler_to_rotmat, rt_to_matrix, se3_exp
+
+
+def surface(n: int, seed: int) -> np.ndarray:
+    """Samples of an asymmetric bumpy ellipsoid (float64, unit scale)."""
+    rng = np.random.default_rng(seed)
+    x = rng.normal(size=(n, 3))
+    x /= np.linalg.norm(x, axis=1, keepdims=True)
+    bump = 1.0 + 0.25 * np.sin(3.0 * x[:, 0]) * np.cos(2.0 * x[:, 1])
+    return x * bump[:, None] * np.array([1.4, 1.0, 0.7])
+
+
+def pose(angles_deg, t) -> np.ndarray:
+    R = euler_to_rotmat(torch.tensor(angles_deg, dtype=torch.float64) * math.pi / 180)
+    return rt_to_matrix(R, torch.tensor(t, dtype=torch.float64)).numpy()
+
+
+def apply(T: np.ndarray, x: np.ndarray) -> np.ndarray:
+    return x @ T[:3, :3].T + T[:3, 3]
 
 
 def error_deg(T: np.ndarray, truth: np.ndarray) -> float:
@@ -54,20 +62,6 @@ def error_deg(T: np.ndarray, truth: np.ndarray) -> float:
 
 def as_poses(transforms: np.ndarray):
     return transforms[:, :3, :3].copy(), transforms[:, :3, 3].copy()
-
-
-def test_weighted_procrustes_matches_the_torch_solver_and_flags_zero_weights():
-    rng = np.random.default_rng(0)
-    p = rng.normal(size=(3, 50, 3))
-    q = p @ pose([20, -40, 70], [0.3, 0.1, -0.2])[:3, :3].T + rng.normal(scale=0.05, size=p.shape)
-    w = rng.uniform(size=(3, 50))
-    w[2] = 0.0
-    (rotations, translations), valid = weighted_procrustes(p, q, w)
-    expected = torch_procrustes(*(torch.from_numpy(a) for a in (p[:2], q[:2], w[:2]))).transform.numpy()
-    np.testing.assert_allclose(rotations[:2], expected[:, :3, :3], atol=1e-9)
-    np.testing.assert_allclose(translations[:2], expected[:, :3, 3], atol=1e-9)
-    assert valid.tolist() == [True, True, False]
-    np.testing.assert_array_equal(rotations[2], np.eye(3))
 
 
 def test_the_irls_coarse_stage_decreases_cdw_monotonically_at_a_fixed_scale():
@@ -91,7 +85,8 @@ def test_the_irls_coarse_stage_decreases_cdw_monotonically_at_a_fixed_scale():
 def test_the_cdw_gradient_is_autograd_of_the_loss_under_a_left_perturbation():
     src, tgt = surface(120, 3), apply(pose([10, 5, -8], [0.05, 0.0, 0.02]), surface(150, 4))
     start = pose([3, -4, 2], [0.01, 0.02, 0.0])
-    gradient = cdw_gradient(as_poses(start[None]), src, tgt, cKDTree(src), cKDTree(tgt), np.array([True]), 2.0)[0]
+    indices = NearestNeighbors(src), NearestNeighbors(tgt)
+    gradient = cdw_gradient(as_poses(start[None]), src, tgt, *indices, np.array([True]), 2.0)[0]
     xi = torch.zeros(6, dtype=torch.float64, requires_grad=True)
     moved = (torch.from_numpy(src) @ torch.from_numpy(start[:3, :3]).T + torch.from_numpy(start[:3, 3]))[None]
     transform = se3_exp(xi[None])[0]
@@ -125,7 +120,7 @@ def test_welsch_irls_recovers_a_pose_from_exact_correspondences():
     src = surface(400, 2)
     truth = pose([8, -5, 4], [0.05, 0.02, -0.03])
     tgt = apply(truth, src)
-    found = welsch_irls(as_poses(np.eye(4)[None]), src, cKDTree(tgt), [0.3] * 5 + [0.05] * 15)
+    found = welsch_irls(as_poses(np.eye(4)[None]), src, NearestNeighbors(tgt), [0.3] * 5 + [0.05] * 15)
     assert rotation_gap_deg(found[0], truth[:3, :3])[0] < 1e-3
     np.testing.assert_allclose(found[1][0], truth[:3, 3], atol=1e-5)
 
@@ -135,19 +130,10 @@ def test_fixed_scale_cost_is_lowest_at_the_true_pose_and_matches_its_definition(
     truth = pose([30, 10, -20], [0.1, 0.0, 0.0])
     tgt = apply(truth, surface(300, 3))
     poses = np.stack([truth, np.eye(4), pose([0, 180, 0], [0, 0, 0]) @ truth])
-    costs = fixed_scale_cost(as_poses(poses), src, cKDTree(tgt), 0.05)
+    costs = fixed_scale_cost(as_poses(poses), src, NearestNeighbors(tgt), 0.05)
     assert int(costs.argmin()) == 0 and costs[0] < 1e-6
     nearest = np.linalg.norm(src[:, None] - tgt[None], axis=2).min(axis=1)
     assert costs[1] == pytest.approx((1 - np.exp(-(nearest**2) / (2 * 0.05**2))).mean())
-
-
-def test_alignment_quality_counts_inliers_as_open3d_does():
-    src = np.array([[0.0, 0, 0], [1, 0, 0], [5, 0, 0]])
-    tgt = np.array([[0.0, 0.1, 0], [1, 0, 0.2]])
-    quality = alignment_quality(src, tgt, np.eye(4), threshold=0.15)
-    assert quality["fitness"] == pytest.approx(1 / 3)
-    assert quality["inlier_rmse"] == pytest.approx(0.1)
-    assert alignment_quality(src, tgt, np.eye(4), threshold=0.01) == {"fitness": 0.0, "inlier_rmse": 0.0}
 
 
 def test_cube_rotations_are_24_distinct_proper_rotations():
@@ -167,36 +153,59 @@ def test_degeneracy():
 
 
 def test_polish_scales_fall_then_hold():
-    options = RobustOptions(polish_steps=6, polish_nu=0.08, polish_end=0.5)
-    scales = polish_scales(options, spacing=0.02)
+    scales = polish_scales(PolishOptions(steps=6, nu=0.08, end=0.5), spacing=0.02)
     np.testing.assert_allclose(scales, [0.08, math.sqrt(0.08 * 0.01), 0.01, 0.01, 0.01, 0.01])
-    assert len(polish_scales(RobustOptions(polish_steps=0), 0.02)) == 0
+    assert len(polish_scales(PolishOptions(steps=0), 0.02)) == 0
+
+
+def options(**flat) -> RobustOptions:
+    return RobustOptions.from_mapping(flat)
 
 
 def test_options_are_checked():
     with pytest.raises(ValueError, match="coarse_points must be > 0"):
-        RobustOptions(coarse_points=0)
+        options(coarse_points=0)
     with pytest.raises(ValueError, match="rounds must be 1, 2 or 3"):
-        RobustOptions(rounds=4)
+        options(rounds=4)
     with pytest.raises(ValueError, match="min_fitness must be in"):
-        RobustOptions(min_fitness=1.5)
+        options(min_fitness=1.5)
     with pytest.raises(ValueError, match="plane_steps must be >= 0"):
-        RobustOptions(plane_steps=-1)
+        options(plane_steps=-1)
     with pytest.raises(ValueError, match="plane_neighbours must be >= 3"):
-        RobustOptions(plane_neighbours=2)
+        options(plane_neighbours=2)
     with pytest.raises(ValueError, match="plane_epsilon must be > 0"):
-        RobustOptions(plane_epsilon=0.0)
+        options(plane_epsilon=0.0)
     with pytest.raises(ValueError, match="coincident_share must be in"):
-        RobustOptions(coincident_share=2.0)
+        options(coincident_share=2.0)
     with pytest.raises(ValueError, match="doubtful_select must be 'polish' or 'fixed'"):
-        RobustOptions(doubtful_select="line")
+        options(doubtful_select="line")
     with pytest.raises(ValueError, match="coarse_sides must be"):
-        RobustOptions(coarse_sides=("both", "target"))
-    assert RobustOptions(coarse_sides=["source"]).coarse_sides == ("source",)
+        options(coarse_sides=("both", "target"))
+    with pytest.raises(ValueError, match="search_keep must be > 0"):
+        options(search_keep=0)
+    assert options(coarse_sides=["source"]).coarse.sides == ("source",)
     with pytest.raises(TypeError, match="unknown option"):
         METHODS.build({"name": "robust", "options": {"startz": 3}})
-    with pytest.raises(ValueError, match=r"device=.cuda.*robust_adam"):
+    with pytest.raises(TypeError, match="unknown polish option"):
+        options(polish={"stepz": 3})
+    with pytest.raises(ValueError, match="method=robust runs on the CPU; device=cuda is not supported"):
         METHODS.build({"name": "robust", "device": "cuda"})
+
+
+def test_every_flat_key_sets_its_group_field_and_groups_work_too():
+    """One mapping from the flat keys users pass to the stage groups: each key lands in its field."""
+    defaults = RobustOptions()
+    groups = [field.name for field in dataclasses.fields(defaults)]
+    special = {"coarse_sides": ("source",), "doubtful_select": "fixed", "rounds": 2, "doubt_ratio": 1.5}
+    for key, (group, name) in FLAT_KEYS.items():
+        default = getattr(getattr(defaults, group), name)
+        value = special[key] if key in special else default + 1 if isinstance(default, int) else 0.9 * default
+        changed = RobustOptions.from_mapping({key: value})
+        assert getattr(getattr(changed, group), name) == value, key
+        assert all(getattr(changed, other) == getattr(defaults, other) for other in groups if other != group)
+    assert len(FLAT_KEYS) == sum(len(dataclasses.fields(getattr(defaults, group))) for group in groups)
+    nested = RobustOptions.from_mapping({"polish": {"steps": 30}, "starts": 7})
+    assert nested.polish.steps == 30 and nested.coarse.starts == 7
 
 
 @pytest.fixture(scope="module")
@@ -209,10 +218,10 @@ def partial_pair():
 
 def test_robust_registration_recovers_a_partial_view_and_reports_its_quality(partial_pair):
     src, tgt, truth = partial_pair
-    result = METHODS.build({"name": "robust", "num_points": 1024})(src, tgt)
-    assert error_deg(result.transform, truth) < 0.5
+    result = linereg.register(src, tgt, num_points=1024)
+    assert error_deg(result.transformation, truth) < 0.5
     info = result.info
-    assert info["fitness"] > 0.95 and 0 < info["inlier_rmse"] < info["fitness_threshold"]
+    assert result.fitness > 0.95 and 0 < result.inlier_rmse < info["fitness_threshold"]
     assert info["converged"] is True and info["confidence"] > 0.2 and info["rounds"] == 1
     assert info["starts"] == 4 * 2 and 1 <= info["candidates"] <= 8 and info["warnings"] == []
     assert info["selection"] == "fixed"
@@ -221,7 +230,7 @@ def test_robust_registration_recovers_a_partial_view_and_reports_its_quality(par
 def test_a_doubtful_pose_gets_the_later_rounds(partial_pair):
     src, tgt, truth = partial_pair
     result = METHODS.build({"name": "robust", "num_points": 512, "options": {"max_cost": 1e-6}})(src, tgt)
-    search_keep = RobustOptions().search_keep
+    search_keep = RobustOptions().search.keep
     assert result.info["rounds"] == 3 and result.info["starts"] == 2 * (4 + 4) + search_keep
     assert result.info["converged"] is False and result.info["selection"] == "polish"
     assert error_deg(result.transform, truth) < 1.0
@@ -233,7 +242,7 @@ def test_init_is_applied_to_the_source_first(partial_pair):
     src, tgt, truth = partial_pair
     flip = pose([180, 0, 0], [0, 0, 0])
     single = {"name": "robust", "num_points": 512, "options": {"starts": 1}}
-    result = METHODS.build(single)(apply(np.linalg.inv(flip), src), tgt, init=flip)
+    result = run_with_init(METHODS.build(single), apply(np.linalg.inv(flip), src), tgt, init=flip)
     assert error_deg(result.transform @ np.linalg.inv(flip), truth) < 0.5
 
 
@@ -337,11 +346,11 @@ def test_the_pose_search_finds_a_view_the_adam_rounds_miss(shared_data):
 
 
 def test_fine_scales_continue_from_the_polish_end():
-    options = RobustOptions(polish_steps=6, polish_end=0.4, fine_end=0.1)
-    np.testing.assert_allclose(fine_scales(options, spacing=0.02), [0.004, 0.002])
-    assert len(fine_scales(RobustOptions(fine_end=0.3, polish_end=0.3), 0.02)) == 0
+    polish = PolishOptions(steps=6, end=0.4, fine_end=0.1)
+    np.testing.assert_allclose(fine_scales(polish, spacing=0.02), [0.004, 0.002])
+    assert len(fine_scales(PolishOptions(fine_end=0.3, end=0.3), 0.02)) == 0
     with pytest.raises(ValueError, match="fine_fitness must be in"):
-        RobustOptions(fine_fitness=1.5)
+        PolishOptions(fine_fitness=1.5)
 
 
 @pytest.mark.shared_data
@@ -363,28 +372,27 @@ def test_a_partial_overlap_keeps_the_polish_scale(partial_pair):
     """A target cut to part of the source (fitness about 0.7): no fine polish, the same pose."""
     src, tgt, _ = partial_pair
     cut = tgt[tgt[:, 1] > tgt[:, 1].mean()]
-    one_round = {"name": "robust", "num_points": 512, "options": {"rounds": 1}}
-    result = METHODS.build(one_round)(src, cut)
-    plain = METHODS.build({**one_round, "options": {"rounds": 1, "fine_end": 0.3}})(src, cut)
-    assert result.info["fine"] is False and result.info["fitness"] < RobustOptions().fine_fitness
-    np.testing.assert_array_equal(result.transform, plain.transform)
+    result = linereg.register(src, cut, num_points=512, options={"rounds": 1})
+    plain = linereg.register(src, cut, num_points=512, options={"rounds": 1, "fine_end": 0.3})
+    assert result.info["fine"] is False and result.fitness < RobustOptions().polish.fine_fitness
+    np.testing.assert_array_equal(result.transformation, plain.transformation)
 
 
 def test_the_doubt_test_judges_a_given_choice_by_the_selection_cost():
     """A choice made by another ranking is doubtful when a distinct rival costs less at
     ``select_nu``; its confidence compares the ranking that made it."""
-    solver = RobustRegistration()
+    select = RobustOptions().select
     rotations = np.stack([np.eye(3), pose([0, 0, 90], [0, 0, 0])[:3, :3], pose([0, 0, 2], [0, 0, 0])[:3, :3]])
     poses = (rotations, np.zeros((3, 3)))
     src = surface(200, 3)
-    tree = cKDTree(src)
+    index = NearestNeighbors(src)
     costs, ranking = np.array([0.30, 0.20, 0.31]), np.array([0.5, 0.8, 0.6])
-    doubtful, confidence, fitness = solver._doubt(poses, costs, src, tree, 0.05, best=0, ranking=ranking)
+    doubtful, confidence, fitness = doubt(select, poses, costs, src, index, 0.05, best=0, ranking=ranking)
     assert doubtful is True and confidence == pytest.approx(1.0 - 0.5 / 0.8) and fitness == 1.0
     cheaper = np.array([0.10, 0.20, 0.31])
-    doubtful, confidence, _ = solver._doubt(poses, cheaper, src, tree, 0.05, best=0, ranking=ranking)
+    doubtful, confidence, _ = doubt(select, poses, cheaper, src, index, 0.05, best=0, ranking=ranking)
     assert doubtful is False and confidence == pytest.approx(1.0 - 0.5 / 0.8)
-    _, confidence, _ = solver._doubt(poses, costs, src, tree, 0.05)
+    _, confidence, _ = doubt(select, poses, costs, src, index, 0.05)
     assert confidence == pytest.approx(1.0 - 0.20 / 0.30)
 
 
@@ -434,7 +442,7 @@ def test_plane_to_plane_steps_remove_the_sampling_offset_of_independent_sampling
     steps from there land within 0.05 deg, for every one of a batch of poses as for each alone."""
     truth = pose([20, -10, 5], [0.1, 0.0, 0.05])
     src, tgt = surface(600, 1), apply(truth, surface(3000, 2))
-    tree = cKDTree(tgt)
+    tree = NearestNeighbors(tgt)
     spacing = point_spacing(tgt, tree)
     starts = np.stack([pose([20.8, -10.5, 5.3], [0.11, 0.01, 0.05]), pose([19.5, -9.7, 4.6], [0.09, 0.0, 0.06])])
     points = welsch_irls(as_poses(starts), src, tree, np.full(20, 0.3 * spacing), 60)

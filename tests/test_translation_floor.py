@@ -1,4 +1,4 @@
-"""RPM-Net's translation on partial views (issue #13): the transform head's frame, the centroid
+"""RPM-Net's translation on partial views: the transform head's frame, the centroid
 bias of a flat assignment, and the nearest-neighbour translation refinement that removes it."""
 
 from __future__ import annotations
@@ -150,7 +150,7 @@ class TestRPMNetTranslationRefinement:
         T = random_transform_paper(2, 5)
         return PairBatch(src, transform_points(T, src), normals, transform_normals(T, normals), gt_transform=T)
 
-    def test_refines_the_last_estimate_outside_training_only(self):
+    def test_appends_the_refined_last_estimate_outside_training_only(self):
         batch = self._pair()
         small = {"name": "rpmnet", "feature_dim": 16, "num_neighbors": 8}
         torch.manual_seed(0)
@@ -160,7 +160,8 @@ class TestRPMNetTranslationRefinement:
         with torch.no_grad():
             before = plain.eval()(batch)
             after = refined_model.eval()(batch)
-        for earlier, same in zip(before.transforms[:-1], after.transforms[:-1], strict=True):
+        assert len(after.transforms) == len(before.transforms) + 1
+        for earlier, same in zip(before.transforms, after.transforms[:-1], strict=True):
             torch.testing.assert_close(earlier, same)
         mass = before.extras["perm_matrices"][-1].sum(-1)
         expected = refine_translation(batch.src_xyz, batch.tgt_xyz, before.transforms[-1], mass, 3)

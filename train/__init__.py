@@ -3,7 +3,7 @@
 
 Every command of the package is a module here, so this file runs before any of them imports
 torch: it asks OpenMP threads to sleep rather than spin while they wait (``OMP_WAIT_POLICY``,
-unless the user set it), since spinning threads oversubscribe small machines (issue #14).
+unless the user set it), since spinning threads oversubscribe small machines.
 ``train(cfg)`` (:mod:`linereg.train.loop`) is imported on first use, so that light entry points
 (``linereg.train.summary``) start without loading torch and the models.
 """

@@ -1,6 +1,6 @@
 """Benchmark registration methods on labelled pairs: the paper's Table 1 and Dragon alpha-recall.
 
-``python -m train.benchmark benchmark=<human|airplane|dragon|3dmatch|folder> methods=[...]
+``linereg-benchmark benchmark=<human|airplane|dragon|3dmatch|folder> methods=[...]
 pairs=N out=<dir>`` (Hydra, ``configs/benchmark.yaml``; ``benchmark=<a folder path>`` is
 short for ``benchmark=folder benchmark.root=<path>``). Every method runs on every pair;
 the errors of the paper's Eq. (``Err_R`` in degrees, ``Err_t`` and ``Err_pw`` in l1 and l2, on
@@ -40,9 +40,16 @@ from linereg.metrics import (
     registration_errors,
 )
 from linereg.registration.methods import METHODS, Method
+from linereg.registry import UnknownNameError
 from linereg.structures import PairSample
 from linereg.train import CONFIG_DIR
+from linereg.train.cli import reported, require, run_app
 
+COMMAND = "linereg-benchmark"
+MANDATORY_HINTS = {
+    "benchmark.run": "a run folder of linereg-train",
+    "benchmark.root": "a folder of labelled pairs or meshes",
+}
 ABSOLUTE_ALPHA_RANGE = (1e-4, 1.0)
 RELATIVE_ALPHA_RANGE = (3e-5, 0.3)
 ALPHA_STEPS = 201
@@ -343,25 +350,26 @@ def write_results(
     return paths
 
 
-def build_methods(selected: Sequence[str], zoo: Mapping[str, Mapping[str, Any]]) -> dict[str, Method]:
-    """Methods to run, by display name: an entry of ``zoo`` or a registered method name.
+def build_methods(selected: Sequence[str], presets: Mapping[str, Mapping[str, Any]]) -> dict[str, Method]:
+    """Methods to run, by display name: an entry of ``presets`` or a registered method name.
 
     Args:
         selected: display names.
-        zoo: display name -> ``{name: <registered method>, **kwargs}``.
+        presets: display name -> ``{name: <registered method>, **kwargs}``.
 
     Raises:
-        KeyError: a name neither in ``zoo`` nor registered (both lists in the message).
+        linereg.registry.UnknownNameError: a name neither in ``presets`` nor registered (both
+            lists in the message).
     """
     methods = {}
     for display in selected:
-        if display in zoo:
-            config = dict(zoo[display])
+        if display in presets:
+            config = dict(presets[display])
         elif display in METHODS:
             config = {"name": display}
         else:
-            raise KeyError(
-                f"unknown method {display!r}: not in the method zoo ({', '.join(zoo) or 'empty'}) "
+            raise UnknownNameError(
+                f"unknown method {display!r}: not in method_presets ({', '.join(presets) or 'empty'}) "
                 f"nor registered ({', '.join(METHODS.names())})"
             )
         methods[display] = METHODS.build(config)
@@ -371,12 +379,12 @@ def build_methods(selected: Sequence[str], zoo: Mapping[str, Mapping[str, Any]])
 def benchmark(config: Mapping[str, Any]) -> dict[str, Path]:
     """Run a benchmark config (``configs/benchmark.yaml``) and write its results.
 
-    Keys: ``benchmark`` (pair source config), ``methods`` (display names), ``method_zoo``,
+    Keys: ``benchmark`` (pair source config), ``methods`` (display names), ``method_presets``,
     ``pairs``, ``seed``, ``out``, ``relative_alpha``, ``alphas``, ``progress``. Records are
     journaled to ``<out>/records.jsonl``: rerunning with the same ``out`` resumes.
     """
     pairs = select_pairs(config["benchmark"], pairs=config.get("pairs"), seed=int(config.get("seed", 0)))
-    methods = build_methods(list(config["methods"]), config.get("method_zoo") or {})
+    methods = build_methods(list(config["methods"]), config.get("method_presets") or {})
     Path(config["out"]).mkdir(parents=True, exist_ok=True)
     journal = Path(config["out"]) / "records.jsonl"
     records = run_benchmark(pairs, methods, progress=bool(config.get("progress", True)), journal=journal)
@@ -402,18 +410,20 @@ def expand_folder_argument(argv: Sequence[str]) -> list[str]:
 
 
 def main() -> None:
-    """``python -m train.benchmark`` (Hydra app on ``configs/benchmark.yaml``)."""
+    """``linereg-benchmark`` (Hydra app on ``configs/benchmark.yaml``; ``linereg-benchmark --help``)."""
     import hydra
     from omegaconf import DictConfig, OmegaConf
 
     @hydra.main(version_base="1.3", config_path=CONFIG_DIR, config_name="benchmark")
     def app(config: DictConfig) -> None:
-        paths = benchmark(OmegaConf.to_container(config, resolve=True))
+        with reported(COMMAND):
+            require(config, COMMAND, MANDATORY_HINTS)
+            paths = benchmark(OmegaConf.to_container(config, resolve=True))
         print(paths["table"].read_text())
         print("\n".join(f"{kind}: {path}" for kind, path in paths.items()))
 
     sys.argv = [sys.argv[0], *expand_folder_argument(sys.argv[1:])]
-    app()
+    run_app(COMMAND, app)
 
 
 if __name__ == "__main__":

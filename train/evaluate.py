@@ -1,4 +1,4 @@
-"""Evaluate a checkpoint: ``python -m train.evaluate checkpoint=<file or run folder> [dataset=...]``.
+"""Evaluate a checkpoint: ``linereg-evaluate checkpoint=<file or run folder> [dataset=...]``.
 
 Loads the model with the config stored in the checkpoint, runs it on a split of any dataset
 (default: the checkpoint's own dataset, ``split=test``) and prints the paper's table (Err_R in
@@ -12,8 +12,10 @@ the identity (no motion) baseline, then the alpha-recall (fraction of pairs with
 * ``pairs.csv``: the errors of every pair;
 * ``figures/pair_XXXX.png``: before/after scatter plots of the first ``num_figures`` pairs.
 
+Iterative models (RPM-Net, FMR) are scored on the iterate chosen by the checkpoint's ``iterate``
+block, or by ``iterate.rule=...`` on the command line (:mod:`linereg.registration.iterates`).
 Unlabelled data (no ``gt_transform``) has no errors: only the loss and the figures are written.
-Config: ``configs/evaluate.yaml``.
+Config: ``configs/evaluate.yaml``; ``linereg-evaluate --help``.
 """
 
 from __future__ import annotations
@@ -39,13 +41,16 @@ from linereg.checkpoint import load_checkpoint
 from linereg.datasets.splits import build_split
 from linereg.losses import build_loss
 from linereg.metrics import ERROR_KEYS, aggregate_errors, paper_table, registration_errors
-from linereg.models import MODELS
+from linereg.models import load_model
+from linereg.registration.iterates import LAST_ITERATE, IterateRule
 from linereg.registry import plain
-from linereg.structures import PairBatch
+from linereg.structures import LossOutput, PairBatch
 from linereg.train import CONFIG_DIR, distributed
-from linereg.train.figures import plot_registration
+from linereg.train.cli import reported, require, run_app
 
 log = logging.getLogger(__name__)
+
+COMMAND = "linereg-evaluate"
 
 IDENTITY = "identity (no motion)"
 
@@ -117,6 +122,7 @@ def evaluate_model(
     keep: int = 0,
     progress: bool = False,
     description: str = "evaluate",
+    iterate: IterateRule = LAST_ITERATE,
 ) -> Evaluation:
     """Run ``model`` (in evaluation mode) over a loader and collect errors and losses.
 
@@ -124,12 +130,14 @@ def evaluate_model(
         model: registration model (``PairBatch -> RegistrationOutput``).
         loader: iterable of :class:`~linereg.structures.PairBatch`.
         device: where to compute.
-        loss: optional loss, averaged over batches (weighted by batch size).
+        loss: optional loss, averaged over batches (weighted by batch size); it receives every
+            iterate as the model returns it.
         amp: autocast dtype of the forward (``None``: float32).
         max_batches: stop after this many batches.
         keep: keep the first ``keep`` pairs (clouds and estimates) for figures.
         progress: show a tqdm bar.
         description: bar label.
+        iterate: the rule choosing, per pair, the iterate whose errors are measured.
 
     Returns:
         An :class:`Evaluation`; errors only when every batch has ``gt_transform``.
@@ -151,38 +159,15 @@ def evaluate_model(
             output = distributed.float32_output(output)
             size = batch.batch_size
             if loss is not None:
-                loss_output = loss(output, batch)
-                sums["loss"] += float(loss_output.total) * size
-                for name, value in loss_output.terms.items():
-                    sums[f"loss/{name}"] += float(value) * size
-                for name, value in loss_output.stats.items():
-                    sums[f"stats/{name}"] += float(value) * size
-            T_pred = output.transform.detach()
+                _add_loss(sums, loss(output, batch), size)
+            T_pred = iterate.select(
+                output.transforms, batch.src_xyz, batch.tgt_xyz, batch.src_lengths, batch.tgt_lengths
+            )[0].detach()
             if batch.gt_transform is None:
                 labelled = False
             else:
-                for key, value in registration_errors(
-                    T_pred, batch.gt_transform, batch.src_xyz, batch.src_lengths
-                ).items():
-                    errors[key].append(value.cpu().numpy())
-                eye = torch.eye(4, dtype=T_pred.dtype, device=T_pred.device).expand_as(T_pred)
-                for key, value in registration_errors(
-                    eye, batch.gt_transform, batch.src_xyz, batch.src_lengths
-                ).items():
-                    identity[key].append(value.cpu().numpy())
-            for b in range(size):
-                if len(result.kept) < keep:
-                    result.kept.append(
-                        KeptPair(
-                            src=_valid(batch.src_xyz, batch.src_lengths, b),
-                            tgt=_valid(batch.tgt_xyz, batch.tgt_lengths, b),
-                            transform=T_pred[b].cpu().double().numpy(),
-                            gt_transform=None
-                            if batch.gt_transform is None
-                            else batch.gt_transform[b].cpu().double().numpy(),
-                            meta=dict(batch.meta[b]) if batch.meta else {},
-                        )
-                    )
+                _add_errors(errors, identity, T_pred, batch)
+            result.kept += [_kept_pair(batch, T_pred, b) for b in range(min(size, keep - len(result.kept)))]
             result.meta.extend(batch.meta if batch.meta else [{} for _ in range(size)])
             result.num_pairs += size
     finally:
@@ -194,6 +179,36 @@ def evaluate_model(
         result.errors = {key: np.concatenate(errors[key]) for key in ERROR_KEYS}
         result.identity_errors = {key: np.concatenate(identity[key]) for key in ERROR_KEYS}
     return result
+
+
+def _add_loss(sums: dict[str, float], loss_output: LossOutput, size: int) -> None:
+    """Add a batch's loss total, terms (``loss/<term>``) and statistics (``stats/<name>``), weighted by ``size``."""
+    sums["loss"] += float(loss_output.total) * size
+    for name, value in loss_output.terms.items():
+        sums[f"loss/{name}"] += float(value) * size
+    for name, value in loss_output.stats.items():
+        sums[f"stats/{name}"] += float(value) * size
+
+
+def _add_errors(
+    errors: dict[str, list[np.ndarray]], identity: dict[str, list[np.ndarray]], T_pred: torch.Tensor, batch: PairBatch
+) -> None:
+    """Append the errors of the estimates ``T_pred (B, 4, 4)`` and of the identity on a labelled batch."""
+    eye = torch.eye(4, dtype=T_pred.dtype, device=T_pred.device).expand_as(T_pred)
+    for estimate, found in ((T_pred, errors), (eye, identity)):
+        for key, value in registration_errors(estimate, batch.gt_transform, batch.src_xyz, batch.src_lengths).items():
+            found[key].append(value.cpu().numpy())
+
+
+def _kept_pair(batch: PairBatch, T_pred: torch.Tensor, b: int) -> KeptPair:
+    """Pair ``b`` of ``batch`` with its estimate, for figures."""
+    return KeptPair(
+        src=_valid(batch.src_xyz, batch.src_lengths, b),
+        tgt=_valid(batch.tgt_xyz, batch.tgt_lengths, b),
+        transform=T_pred[b].cpu().double().numpy(),
+        gt_transform=None if batch.gt_transform is None else batch.gt_transform[b].cpu().double().numpy(),
+        meta=dict(batch.meta[b]) if batch.meta else {},
+    )
 
 
 def report(name: str, evaluation: Evaluation, alphas: Sequence[float]) -> str:
@@ -271,7 +286,16 @@ def write_evaluation(
                 )
     (out_dir / "metrics.json").write_text(json.dumps(content, indent=2))
     (out_dir / "table.md").write_text(report(name, evaluation, alphas) + "\n")
-    for i, pair in enumerate(evaluation.kept):
+    if evaluation.kept:
+        _write_figures(evaluation.kept, out_dir / "figures")
+    return content
+
+
+def _write_figures(pairs: Sequence[KeptPair], folder: Path) -> None:
+    """Before/after scatter plots ``pair_XXXX.png`` of ``pairs``, titled with their errors."""
+    from linereg.train.figures import plot_registration
+
+    for i, pair in enumerate(pairs):
         title = _pair_name(pair.meta, i)
         if pair.gt_transform is not None:
             errors = registration_errors(
@@ -280,8 +304,7 @@ def write_evaluation(
                 torch.from_numpy(pair.src)[None],
             )
             title += f"  Err_R {float(errors['err_r_deg'][0]):.2f} deg, Err_pw(l2) {float(errors['err_pw_l2'][0]):.4f}"
-        plot_registration(pair.src, pair.tgt, pair.transform, out_dir / "figures" / f"pair_{i:04d}.png", title=title)
-    return content
+        plot_registration(pair.src, pair.tgt, pair.transform, folder / f"pair_{i:04d}.png", title=title)
 
 
 def evaluate(cfg: DictConfig) -> dict[str, Any]:
@@ -291,17 +314,15 @@ def evaluate(cfg: DictConfig) -> dict[str, Any]:
         cfg: the composed ``configs/evaluate.yaml``.
 
     Returns:
-        The ``metrics.json`` contents (``model``/``identity`` metrics, counts, paths).
+        The ``metrics.json`` contents (``model``/``identity`` metrics, counts, paths, iterate rule).
     """
     if cfg.get("dataset") and cfg.get("data_from"):
         raise ValueError("give either dataset=... or data_from=..., not both")
     device = distributed.resolve_device(cfg.device, name="device")
     distributed.set_threads(cfg.threads)
-    state = load_checkpoint(cfg.checkpoint)
+    model, state = load_model(cfg.checkpoint, device)
     stored = state["config"]
-    model = MODELS.build(stored["model"])
-    model.load_state_dict(state["model"])
-    model.to(device)
+    iterate = iterate_rule(stored, cfg.get("iterate"))
     data_source = load_checkpoint(cfg.data_from)["config"] if cfg.get("data_from") else stored
     with open_dict(cfg):
         if cfg.trainer.num_points is None:
@@ -328,24 +349,36 @@ def evaluate(cfg: DictConfig) -> dict[str, Any]:
         max_batches=cfg.max_batches,
         keep=cfg.num_figures,
         progress=cfg.progress,
+        iterate=iterate,
     )
     name = f"{stored['model']['name']} ({Path(state['path']).name})"
     output_dir = Path(cfg.output_dir)
-    content = write_evaluation(
-        evaluation,
-        output_dir,
-        name=name,
-        alphas=list(cfg.alphas),
-        info={
-            "checkpoint": state["path"],
-            "dataset": dataset_config.get("name"),
-            "split": cfg.split,
-            "epoch": state["progress"]["epoch"],
-        },
-    )
+    info = {
+        "checkpoint": state["path"],
+        "dataset": dataset_config.get("name"),
+        "split": cfg.split,
+        "epoch": state["progress"]["epoch"],
+        "iterate": {"rule": iterate.rule, "keep_fraction": iterate.keep_fraction},
+    }
+    content = write_evaluation(evaluation, output_dir, name=name, alphas=list(cfg.alphas), info=info)
     print(report(name, evaluation, list(cfg.alphas)))
     log.info("evaluation written to %s", output_dir)
     return content
+
+
+def iterate_rule(stored: Mapping[str, Any], overrides: Mapping[str, Any] | None) -> IterateRule:
+    """The iterate rule of an evaluation: the run's ``iterate`` block, with the non-null ``overrides``.
+
+    Args:
+        stored: the checkpoint's run config (:func:`linereg.models.upgrade_run_config` layout).
+        overrides: the command's ``iterate`` block (``null`` entries keep the run's value).
+
+    Raises:
+        ValueError: an unknown key or a bad value, naming it.
+    """
+    chosen = dict(stored.get("iterate") or {})
+    chosen.update({key: value for key, value in (overrides or {}).items() if value is not None})
+    return IterateRule.from_config(chosen)
 
 
 def _labelled(dataset: Dataset) -> bool:
@@ -354,8 +387,15 @@ def _labelled(dataset: Dataset) -> bool:
 
 
 @hydra.main(version_base="1.3", config_path=CONFIG_DIR, config_name="evaluate")
-def main(cfg: DictConfig) -> None:
-    evaluate(cfg)
+def _evaluate_app(cfg: DictConfig) -> None:
+    with reported(COMMAND):
+        require(cfg, COMMAND, {"checkpoint": "a checkpoint file or run folder of linereg-train"})
+        evaluate(cfg)
+
+
+def main() -> None:
+    """The command (``linereg-evaluate``; Hydra parses ``sys.argv``)."""
+    run_app(COMMAND, _evaluate_app)
 
 
 if __name__ == "__main__":

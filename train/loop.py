@@ -12,6 +12,9 @@ One run::
        ``evaluate_split`` (printed table, ``evaluation/``)
     -> ``metrics.json`` in the run folder (``evaluated_checkpoint``: which file, which epoch)
 
+The loss trains on every iterate the model returns; validation and evaluation measure the
+errors of the iterate the config's ``iterate`` block chooses (:mod:`linereg.train.validation`).
+
 ``trainer.untrained=true`` runs no epoch (whatever the curriculum; an all-zero curriculum is an
 error otherwise): the initial weights are validated, written as ``last.pt`` and evaluated
 exactly like a trained run's, the control cell "untrained network" of a results table.
@@ -23,7 +26,6 @@ order (a function of seed and epoch), optimizer, scheduler, curriculum stage and
 
 from __future__ import annotations
 
-import json
 import logging
 import math
 import os
@@ -32,7 +34,6 @@ import time
 import warnings
 from collections import defaultdict
 from collections.abc import Mapping
-from dataclasses import dataclass, fields, replace
 from pathlib import Path
 from typing import Any
 
@@ -46,8 +47,8 @@ from tqdm.auto import tqdm
 from linereg.checkpoint import BEST, CHECKPOINT_DIR, LAST, load_checkpoint
 from linereg.datasets.splits import build_split
 from linereg.losses import build_loss, set_training_progress
-from linereg.models import MODELS
-from linereg.registry import plain
+from linereg.models import MODELS, upgrade_run_config
+from linereg.registration.iterates import IterateRule
 from linereg.structures import LossOutput, PairBatch, RegistrationOutput
 from linereg.train import distributed
 from linereg.train.checkpoint import (
@@ -59,66 +60,15 @@ from linereg.train.checkpoint import (
     save_checkpoint,
 )
 from linereg.train.curriculum import Curriculum, Stage
-from linereg.train.evaluate import Evaluation, evaluate_model, report, write_evaluation
+from linereg.train.diagnostics import describe_non_finite_loss
 from linereg.train.figures import registration_figure
 from linereg.train.logging import RunLogger
 from linereg.train.optim import OPTIMIZERS, SCHEDULERS
 from linereg.train.resume import config_for_resume, resume_checkpoint
+from linereg.train.settings import TrainerSettings
+from linereg.train.validation import Monitor, RunEvaluator, write_run_metrics
 
 log = logging.getLogger(__name__)
-
-@dataclass(frozen=True)
-class TrainerSettings:
-    """The ``trainer`` section of the config (see ``configs/train.yaml`` for each key)."""
-
-    device: str = "auto"
-    threads: int | None = None
-    amp: str | bool = False
-    batch_size: int = 8
-    eval_batch_size: int = 16
-    num_points: int | None = 512
-    num_workers: int = 0
-    grad_clip_norm: float | None = 10.0
-    val_every: int = 1
-    val_before_training: bool = True
-    monitor: str = "val/err_r_deg_mean"
-    monitor_mode: str = "min"
-    max_steps_per_epoch: int | None = None
-    max_eval_batches: int | None = None
-    log_every: int = 10
-    progress: bool = True
-    max_bad_steps: int = 20
-    detect_anomaly: bool = False
-    ddp_find_unused_parameters: bool = False
-    alphas: tuple[float, ...] = (0.01, 0.02, 0.05, 0.1)
-    untrained: bool = False
-    evaluate_checkpoint: str = "best"
-    log_term_grad_norms: bool = True
-
-    @classmethod
-    def from_config(cls, config: Mapping[str, Any]) -> TrainerSettings:
-        """Validated settings; unknown keys raise ``ValueError`` listing the accepted ones."""
-        config = dict(plain(config))
-        accepted = {f.name for f in fields(cls)}
-        unknown = sorted(set(config) - accepted)
-        if unknown:
-            raise ValueError(f"unknown trainer key(s) {unknown}; accepted: {sorted(accepted)}")
-        if "alphas" in config:
-            config["alphas"] = tuple(float(a) for a in config["alphas"])
-        settings = cls(**config)
-        if settings.monitor_mode not in ("min", "max"):
-            raise ValueError(f"trainer.monitor_mode must be 'min' or 'max', got {settings.monitor_mode!r}")
-        if settings.evaluate_checkpoint not in ("best", "last"):
-            raise ValueError(
-                f"trainer.evaluate_checkpoint must be 'best' or 'last', got {settings.evaluate_checkpoint!r}"
-            )
-        for name in ("untrained", "log_term_grad_norms"):
-            if not isinstance(getattr(settings, name), bool):
-                raise ValueError(f"trainer.{name} must be true or false, got {getattr(settings, name)!r}")
-        for name in ("batch_size", "eval_batch_size", "val_every", "log_every", "max_bad_steps"):
-            if getattr(settings, name) < 1:
-                raise ValueError(f"trainer.{name} must be >= 1, got {getattr(settings, name)}")
-        return settings
 
 
 def seed_everything(seed: int, deterministic: bool = False) -> None:
@@ -131,19 +81,6 @@ def seed_everything(seed: int, deterministic: bool = False) -> None:
         torch.use_deterministic_algorithms(True, warn_only=True)
         torch.backends.cudnn.benchmark = False
         torch.backends.cudnn.deterministic = True
-
-
-def _select_sample(value: Any, index: int, batch_size: int) -> Any:
-    """Sample ``index`` of batched values (tensors with a leading batch axis, lists, dicts)."""
-    if isinstance(value, torch.Tensor):
-        return value[index : index + 1] if value.ndim and value.shape[0] == batch_size else value
-    if isinstance(value, list | tuple):
-        if len(value) == batch_size and not any(isinstance(v, torch.Tensor) for v in value):
-            return type(value)([value[index]])
-        return type(value)(_select_sample(v, index, batch_size) for v in value)
-    if isinstance(value, dict):
-        return {key: _select_sample(v, index, batch_size) for key, v in value.items()}
-    return value
 
 
 class Trainer:
@@ -177,9 +114,10 @@ class Trainer:
         self.epoch = 0
         self.global_step = 0
         self.stage_index: int | None = None
-        self.best: dict[str, Any] = {"metric": self.settings.monitor, "value": None, "epoch": None}
+        self.monitor = Monitor(self.settings.monitor, self.settings.monitor_mode)
+        iterate = IterateRule.from_config(config.get("iterate"))
+        self.evaluator = RunEvaluator(self.model, self.loss, self.settings, self.device, self.amp, iterate)
         self.bad_steps = 0
-        self.monitor = self.settings.monitor
         self.initial_metrics: dict[str, float] = {}
         self.train_data = None
         self.val_data = None
@@ -202,7 +140,7 @@ class Trainer:
                 "stage": self.stage_index,
                 "stage_name": None if stage is None else stage.name,
             },
-            "best": dict(self.best),
+            "best": self.monitor.state(),
             "rng": rng_state(),
             "generators": generator_states(self.loss),
             "metrics": dict(metrics),
@@ -216,8 +154,7 @@ class Trainer:
         self.scaler.load_state_dict(state["scaler"])
         self.epoch = int(progress["epoch"])
         self.global_step = int(progress["global_step"])
-        self.best = dict(state["best"])
-        self.monitor = self.best.get("metric") or self.monitor
+        self.monitor.load(state["best"])
         if progress["stage"] is not None:  # None: saved before the first stage (an untrained run)
             self.stage_index = int(progress["stage"])
             stage = self.curriculum.stages[self.stage_index]
@@ -278,36 +215,6 @@ class Trainer:
         output = distributed.float32_output(output)
         return output, self.loss(output, batch)
 
-    def _report_bad_batch(self, batch: PairBatch, output: RegistrationOutput, loss_output: LossOutput) -> str:
-        """Find which samples give a non-finite loss and describe them."""
-        culprits = []
-        with torch.no_grad():
-            for b in range(batch.batch_size):
-                sample_batch = PairBatch(
-                    **{f.name: _select_sample(getattr(batch, f.name), b, batch.batch_size) for f in fields(PairBatch)}
-                )
-                sample_output = replace(
-                    output,
-                    transforms=[T[b : b + 1] for T in output.transforms],
-                    extras=_select_sample(output.extras, b, batch.batch_size),
-                )
-                finite_transform = all(bool(torch.isfinite(T).all()) for T in sample_output.transforms)
-                try:
-                    value = float(self.loss(sample_output, sample_batch).total)
-                except (RuntimeError, ValueError) as error:
-                    value = float("nan")
-                    log.debug("loss of sample %d failed: %s", b, error)
-                if not (finite_transform and math.isfinite(value)):
-                    meta = batch.meta[b] if batch.meta else {}
-                    culprits.append(
-                        f"sample {b} (meta {meta}): transform {'finite' if finite_transform else 'NON-FINITE'}, "
-                        f"loss {value}"
-                    )
-        terms = ", ".join(f"{name}={float(value.detach()):.4g}" for name, value in loss_output.terms.items())
-        found = "; ".join(culprits) if culprits else "no single sample reproduces it"
-        where = f"epoch {self.epoch} step {self.global_step}"
-        return f"non-finite loss {float(loss_output.total.detach())} ({terms}) at {where}: {found}"
-
     def _train_step(self, batch: PairBatch) -> dict[str, float] | None:
         """One optimizer step; ``None`` when skipped (non-finite loss or gradients)."""
         batch = batch.to(self.device)
@@ -315,7 +222,11 @@ class Trainer:
         finite = bool(torch.isfinite(loss_output.total))
         if not distributed.all_ranks_true(finite, self.ctx):
             message = (
-                self._report_bad_batch(batch, output, loss_output) if not finite else "non-finite loss on another rank"
+                describe_non_finite_loss(
+                    self.loss, batch, output, loss_output, f"epoch {self.epoch} step {self.global_step}"
+                )
+                if not finite
+                else "non-finite loss on another rank"
             )
             return self._skip_step(message)
         logging_step = (self.global_step + 1) % self.settings.log_every == 0
@@ -432,37 +343,14 @@ class Trainer:
         means["epoch_seconds"] = time.perf_counter() - began
         return means
 
-    # ----------------------------------------------------------------------------- evaluation
-    def _evaluate(
-        self, dataset, *, keep: int = 0, description: str = "validate", max_batches: int | None = None
-    ) -> Evaluation:
-        """Evaluate the current model on ``dataset`` (this process only; ``max_batches``: a prefix)."""
-        loader = distributed.make_loader(
-            dataset,
-            batch_size=self.settings.eval_batch_size,
-            num_points=self.settings.num_points,
-            shuffle=False,
-            num_workers=self.settings.num_workers,
-        )
-        return evaluate_model(
-            distributed.unwrap(self.model),
-            loader,
-            device=self.device,
-            loss=self.loss,
-            amp=self.amp,
-            max_batches=max_batches,
-            keep=keep,
-            progress=self.settings.progress,
-            description=description,
-        )
-
+    # ----------------------------------------------------------------------------- validation
     def _validate(self) -> dict[str, float]:
         """Validation metrics (``val/...``) on rank 0; ``{}`` elsewhere or without a val split."""
         if self.val_data is None or not self.ctx.is_main:
             return {}
         logger_config = self.config["logger"]
         keep = logger_config.get("num_figures", 0) if logger_config.get("tensorboard") else 0
-        evaluation = self._evaluate(self.val_data, keep=keep, max_batches=self.settings.max_eval_batches)
+        evaluation = self.evaluator.evaluate(self.val_data, keep=keep, max_batches=self.settings.max_eval_batches)
         metrics = {f"val/{k}": v for k, v in evaluation.metrics(self.settings.alphas).items()}
         if self.logger is not None:
             self.logger.scalars(metrics, self.global_step)
@@ -470,33 +358,6 @@ class Trainer:
                 figure = registration_figure(pair.src, pair.tgt, pair.transform, title=f"epoch {self.epoch + 1}")
                 self.logger.figure(f"val/registration_{i}", figure, self.global_step)
         return metrics
-
-    def _monitored(self, metrics: Mapping[str, float]) -> float | None:
-        """The monitored value in ``metrics`` (falls back to ``val/loss`` on unlabelled data)."""
-        if not metrics:
-            return None
-        if self.monitor not in metrics:
-            if "val/loss" in metrics and "val/err_r_deg_mean" not in metrics:
-                warnings.warn(
-                    f"trainer.monitor={self.monitor!r} is unavailable (the validation data has no ground truth); "
-                    "selecting the best checkpoint by val/loss",
-                    stacklevel=2,
-                )
-                self.monitor = self.best["metric"] = "val/loss"
-            else:
-                raise KeyError(
-                    f"trainer.monitor={self.monitor!r} is not a validation metric; available: {sorted(metrics)}"
-                )
-        return float(metrics[self.monitor])
-
-    def _improved(self, value: float | None) -> bool:
-        """Whether ``value`` beats the best so far."""
-        if value is None or not math.isfinite(value):
-            return False
-        best = self.best["value"]
-        if best is None:
-            return True
-        return value < best if self.settings.monitor_mode == "min" else value > best
 
     # ----------------------------------------------------------------------------- run
     def fit(self) -> dict[str, Any]:
@@ -528,7 +389,9 @@ class Trainer:
                 initial = self._validate()
                 self.initial_metrics = {key.replace("val/", "val_initial/", 1): v for key, v in initial.items()}
                 if self.initial_metrics:
-                    log.info("before training: %s %.4g", self.monitor, initial.get(self.monitor, math.nan))
+                    log.info(
+                        "before training: %s %.4g", self.monitor.metric, initial.get(self.monitor.metric, math.nan)
+                    )
             self._enter_stage(0)
         total = self.curriculum.total_epochs
         while self.epoch < total:
@@ -546,10 +409,8 @@ class Trainer:
             self.epoch += 1
             self.logger.scalars({f"epoch/{k}": v for k, v in train_means.items()}, self.global_step)
             self.logger.scalars({"epoch": self.epoch}, self.global_step)
-            monitored = self._monitored(metrics)
-            improved = self._improved(monitored)
-            if improved:
-                self.best.update(value=monitored, epoch=self.epoch)
+            monitored = self.monitor.read(metrics)
+            improved = self.monitor.update(monitored, self.epoch)
             if self.ctx.is_main:
                 state = self.state_dict(metrics)
                 save_checkpoint(state, checkpoints / LAST)
@@ -560,7 +421,7 @@ class Trainer:
                     self.epoch,
                     total,
                     train_means.get("loss", math.nan),
-                    "" if monitored is None else f", {self.monitor} {monitored:.4g}",
+                    "" if monitored is None else f", {self.monitor.metric} {monitored:.4g}",
                     " (best)" if improved else "",
                     train_means["epoch_seconds"],
                 )
@@ -598,10 +459,10 @@ class Trainer:
             "model": distributed.unwrap(self.model),
         }
         trained = not self.settings.untrained
-        diverged = self.ctx.is_main and trained and self.val_data is not None and self.best["value"] is None
+        diverged = self.ctx.is_main and trained and self.val_data is not None and self.monitor.value is None
         if distributed.broadcast_object(diverged, self.ctx):
             raise FloatingPointError(
-                f"no validation gave a finite {self.monitor}: the model is not usable (no best.pt was written; "
+                f"no validation gave a finite {self.monitor.metric}: the model is not usable (no best.pt was written; "
                 f"{checkpoints / LAST} holds the last state). Lower optimizer.lr or check the data"
             )
         if not self.ctx.is_main:
@@ -610,65 +471,46 @@ class Trainer:
         evaluated_state = load_checkpoint(evaluated_file, map_location=self.device)
         evaluated_epoch = int(evaluated_state["progress"]["epoch"])
         metrics = {k: v for k, v in evaluated_state["metrics"].items() if k.startswith("val/")}
-        split = self.config.get("evaluate_split")
-        dataset = build_split(self.config["dataset"], split, progress=self.settings.progress) if split else None
-        if dataset is not None:
-            model = distributed.unwrap(self.model)
-            model.load_state_dict(evaluated_state["model"])
-            evaluation = self._evaluate(
-                dataset, keep=int(self.config["logger"].get("num_figures", 0)), description=split
-            )
-            name = f"{self.config['model']['name']} ({evaluated_file.name}, epoch {evaluated_epoch})"
-            write_evaluation(
-                evaluation,
-                self.run_dir / "evaluation",
-                name=name,
-                alphas=self.settings.alphas,
-                info={"checkpoint": str(evaluated_file), "dataset": self.config["dataset"].get("name"), "split": split},
-            )
-            metrics.update({f"{split}/{k}": v for k, v in evaluation.metrics(self.settings.alphas).items()})
-            if evaluation.labelled:
-                identity = evaluation.metrics(self.settings.alphas, identity=True)
-                metrics.update({f"{split}/identity/{k}": v for k, v in identity.items()})
-            self.logger.scalars({k: v for k, v in metrics.items() if k.startswith(f"{split}/")}, self.global_step)
-            dataset_name = self.config["dataset"].get("name")
-            print(f"\nEvaluation of {evaluated_file} on the {split!r} split of {dataset_name!r}:\n")
-            print(report(name, evaluation, self.settings.alphas))
+        metrics.update(self._evaluate_split(evaluated_file, evaluated_state))
         metrics.update(self.initial_metrics)
-        metrics["best_epoch"] = self.best["epoch"]
-        optimized = self.config.get("optimized_metric")
+        metrics["best_epoch"] = self.monitor.epoch
         content = {
             "metrics": metrics,
-            "optimized_metric": optimized,
-            "best": self.best,
+            "optimized_metric": self.config.get("optimized_metric"),
+            "best": self.monitor.state(),
             "evaluated_checkpoint": {
                 "file": evaluated_file.name,
                 "path": str(evaluated_file),
                 "epoch": evaluated_epoch,
             },
+            "iterate": self.evaluator.iterate_info(),
             "untrained": self.settings.untrained,
             "run_dir": str(self.run_dir),
         }
-        (self.run_dir / "metrics.json").write_text(_json(content))
+        write_run_metrics(self.run_dir, content)
         log.info("run folder: %s", self.run_dir)
         distributed.barrier(self.ctx)
         results["metrics"] = metrics
         return results
 
-
-def _json(value: Any) -> str:
-    """Pretty JSON (non-finite floats written as strings)."""
-
-    def clean(item: Any) -> Any:
-        if isinstance(item, float) and not math.isfinite(item):
-            return str(item)
-        if isinstance(item, Mapping):
-            return {k: clean(v) for k, v in item.items()}
-        if isinstance(item, list | tuple):
-            return [clean(v) for v in item]
-        return item
-
-    return json.dumps(clean(value), indent=2)
+    def _evaluate_split(self, evaluated_file: Path, evaluated_state: Mapping[str, Any]) -> dict[str, float]:
+        """The weights of ``evaluated_state`` scored on ``evaluate_split`` (``{}`` when there is none)."""
+        split = self.config.get("evaluate_split")
+        dataset = build_split(self.config["dataset"], split, progress=self.settings.progress) if split else None
+        if dataset is None:
+            return {}
+        distributed.unwrap(self.model).load_state_dict(evaluated_state["model"])
+        epoch = int(evaluated_state["progress"]["epoch"])
+        metrics = self.evaluator.final(
+            dataset,
+            split,
+            self.run_dir / "evaluation",
+            name=f"{self.config['model']['name']} ({evaluated_file.name}, epoch {epoch})",
+            info={"checkpoint": str(evaluated_file), "dataset": self.config["dataset"].get("name"), "split": split},
+            keep=int(self.config["logger"].get("num_figures", 0)),
+        )
+        self.logger.scalars(metrics, self.global_step)
+        return metrics
 
 
 def train(cfg: DictConfig) -> dict[str, Any]:
@@ -695,7 +537,7 @@ def train(cfg: DictConfig) -> dict[str, Any]:
         state = None
         if resume_file is not None:
             state = load_resume_checkpoint(resume_file, map_location=ctx.device)
-            config = config_for_resume(config, state["config"])
+            config = config_for_resume(config, upgrade_run_config(state["config"]))
             output_dir = Path(state["path"]).parent.parent
             log.info("resuming %s at epoch %d", state["path"], state["progress"]["epoch"])
         distributed.set_threads(config["trainer"].get("threads"))

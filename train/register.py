@@ -23,8 +23,8 @@ from __future__ import annotations
 
 import json
 import logging
-import sys
 import warnings
+from importlib.util import find_spec
 from pathlib import Path
 from typing import Any
 
@@ -33,8 +33,11 @@ import numpy as np
 from omegaconf import DictConfig, ListConfig, OmegaConf
 
 from linereg.train import CONFIG_DIR
+from linereg.train.cli import reported, require, run_app
 
 log = logging.getLogger(__name__)
+
+COMMAND = "linereg-register"
 
 _MIN_POINTS = 3
 SOLVERS = ("robust", "adam", "svd")
@@ -123,14 +126,10 @@ def method_config(cfg: DictConfig) -> dict[str, Any] | str:
         if cfg.loss is not None:
             raise RegisterError(f"loss={cfg.loss} needs solver=adam (the robust solver has its own losses)")
         options = OmegaConf.to_container(cfg.robust) if cfg.robust else {}
-        if cfg.device in (None, "cpu"):
-            if cfg.threads is not None:
-                raise RegisterError(
-                    f"threads={cfg.threads}: the robust solver on the CPU is numpy (one thread); "
-                    "threads= sets the torch threads of device=... runs"
-                )
-            return {"name": "robust", "options": options, "num_points": cfg.num_points}
-        return {"name": "robust_adam", "options": options, "device": cfg.device, "threads": cfg.threads, **common}
+        config = {"name": "robust", "options": options, "num_points": cfg.num_points}
+        if cfg.device not in (None, "cpu"):
+            config["device"] = cfg.device  # the solver refuses it, saying why
+        return config
     if cfg.loss is not None:
         loss = {"name": cfg.loss} if isinstance(cfg.loss, str) else OmegaConf.to_container(cfg.loss)
         stages = [{"loss": loss, "iterations": cfg.iterations, "lr": cfg.lr}]
@@ -152,8 +151,7 @@ def register_files(cfg: DictConfig, out_dir: Path) -> tuple[Any, dict[str, Any]]
     Raises:
         RegisterError: a bad argument or file, naming it.
     """
-    from linereg.io import read_transform, write_point_cloud, write_transform
-    from linereg.registration import register
+    from linereg.io import read_transform
 
     src = read_cloud(cfg.source, "source")
     tgt = read_cloud(cfg.target, "target")
@@ -164,19 +162,23 @@ def register_files(cfg: DictConfig, out_dir: Path) -> tuple[Any, dict[str, Any]]
         except (FileNotFoundError, ValueError) as error:
             raise RegisterError(f"gt={cfg.gt}: {error}") from error
     init = parse_init(cfg.init)
+    if cfg.picture and find_spec("matplotlib") is None:
+        raise RegisterError(
+            "picture=true needs matplotlib, which comes with the [train] extra: pip install 'linereg[train]'"
+        )
+    result, notes = _register(cfg, src, tgt, init, gt)
+    report = _report(cfg, src, tgt, result, notes, gt)
+    _write_outputs(cfg, out_dir, src, tgt, result.transformation, report)
+    return result, report
+
+
+def _register(cfg: DictConfig, src, tgt, init: np.ndarray | None, gt: np.ndarray | None) -> tuple[Any, list[str]]:
+    """:func:`linereg.register` as configured; the result and the warnings it gave."""
+    from linereg.registration import register
+
     config = method_config(cfg)
-    if gt is not None and isinstance(config, dict) and not config["name"].startswith("robust"):
-        import torch
-
-        from linereg.metrics import rotation_error_deg
-
-        R_gt = torch.from_numpy(gt[:3, :3])
-
-        def monitor(step: int, transform: np.ndarray, loss: float) -> dict[str, float]:
-            # Centring the clouds changes only the translation: the rotation is already final.
-            return {"err_r": float(rotation_error_deg(torch.from_numpy(transform[:3, :3]), R_gt))}
-
-        config["monitor"] = monitor
+    if gt is not None and isinstance(config, dict) and config["name"] != "robust":
+        config["monitor"] = _rotation_monitor(gt)
     options = {"refine": OmegaConf.to_container(cfg.refine) if OmegaConf.is_config(cfg.refine) else cfg.refine}
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
@@ -195,6 +197,26 @@ def register_files(cfg: DictConfig, out_dir: Path) -> tuple[Any, dict[str, Any]]
     notes = [str(w.message) for w in caught if issubclass(w.category, UserWarning)]
     for note in notes:
         log.warning(note)
+    return result, notes
+
+
+def _rotation_monitor(gt: np.ndarray):
+    """A solver monitor reporting the rotation error against the ground truth ``gt (4, 4)``."""
+    import torch
+
+    from linereg.metrics import rotation_error_deg
+
+    R_gt = torch.from_numpy(gt[:3, :3])
+
+    def monitor(step: int, transform: np.ndarray, loss: float) -> dict[str, float]:
+        # Centring the clouds changes only the translation: the rotation is already final.
+        return {"err_r": float(rotation_error_deg(torch.from_numpy(transform[:3, :3]), R_gt))}
+
+    return monitor
+
+
+def _report(cfg: DictConfig, src, tgt, result, notes: list[str], gt: np.ndarray | None) -> dict[str, Any]:
+    """The contents of ``result.json``: clouds, method, time, transform, quality and (with ``gt``) errors."""
     transform = result.transformation
     info = dict(result.info)
     quality = {key: info.pop(key) for key in ("converged", "confidence", "init") if key in info}
@@ -221,6 +243,13 @@ def register_files(cfg: DictConfig, out_dir: Path) -> tuple[Any, dict[str, Any]]
             torch.from_numpy(transform)[None], torch.from_numpy(gt)[None], torch.from_numpy(src.xyz).double()[None]
         )
         report["metrics"] = {key: float(value[0]) for key, value in errors.items()}
+    return report
+
+
+def _write_outputs(cfg: DictConfig, out_dir: Path, src, tgt, transform: np.ndarray, report: dict[str, Any]) -> None:
+    """``transform.txt``, ``registered.ply``, ``result.json`` (and ``registration.png``) in ``out_dir``."""
+    from linereg.io import write_point_cloud, write_transform
+
     out_dir.mkdir(parents=True, exist_ok=True)
     write_transform(out_dir / "transform.txt", transform)
     moved = (src.xyz.astype(np.float64) @ transform[:3, :3].T + transform[:3, 3]).astype(np.float32)
@@ -231,7 +260,6 @@ def register_files(cfg: DictConfig, out_dir: Path) -> tuple[Any, dict[str, Any]]
         from linereg.train.figures import plot_registration
 
         plot_registration(src.xyz, tgt.xyz, transform, out_dir / "registration.png", title=Path(cfg.source).name)
-    return result, report
 
 
 def _remove_if_empty(folder: Path) -> None:
@@ -244,17 +272,15 @@ def _remove_if_empty(folder: Path) -> None:
 
 
 @hydra.main(version_base="1.3", config_path=f"{CONFIG_DIR}/register", config_name="register")
-def main(cfg: DictConfig) -> None:
+def _register_app(cfg: DictConfig) -> None:
     out_dir = Path(hydra.core.hydra_config.HydraConfig.get().runtime.output_dir)
-    try:
-        result, report = register_files(cfg, out_dir)
-    except RegisterError as error:
-        _remove_if_empty(out_dir)
-        print(f"error: {error}", file=sys.stderr)
-        sys.exit(2)
-    except BaseException:
-        _remove_if_empty(out_dir)
-        raise
+    with reported(COMMAND):
+        try:
+            require(cfg, COMMAND, {"source": "a point-cloud file", "target": "a point-cloud file"})
+            result, report = register_files(cfg, out_dir)
+        except BaseException:
+            _remove_if_empty(out_dir)
+            raise
     np.set_printoptions(precision=6, suppress=True)
     print(f"source -> target transform ({result.seconds:.2f} s):")
     print(result.transformation)
@@ -267,6 +293,11 @@ def main(cfg: DictConfig) -> None:
             f"| Err_pw l1 {m['err_pw_l1']:.4g} l2 {m['err_pw_l2']:.4g}"
         )
     print(f"outputs in {out_dir}")
+
+
+def main() -> None:
+    """The command (``linereg-register``; Hydra parses ``sys.argv``)."""
+    run_app(COMMAND, _register_app)
 
 
 if __name__ == "__main__":

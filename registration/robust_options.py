@@ -1,0 +1,295 @@
+"""Settings of the ``register`` default, one frozen group per stage (as Open3D's option objects).
+
+:class:`RobustOptions` composes :class:`CoarseOptions`, :class:`PolishOptions`,
+:class:`PlaneOptions`, :class:`SelectOptions` and :class:`SearchOptions`. Lengths are in the unit
+ball of the centred pair unless a field says "target point spacings". Users pass the settings as
+one flat mapping, ``register(a, b, options={"starts": 7, "polish_steps": 30})`` or
+``linereg-register ... robust.starts=7``; :data:`FLAT_KEYS` maps each flat key to its group's
+field (a group's mapping, ``{"polish": {"steps": 30}}``, works as well).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass, field, fields
+from typing import Any, ClassVar
+
+from linereg.registration.poses import axis_rotations
+
+FLAT_KEYS: dict[str, tuple[str, str]] = {
+    "starts": ("coarse", "starts"),
+    "coarse_points": ("coarse", "points"),
+    "coarse_sides": ("coarse", "sides"),
+    "coarse_nu0": ("coarse", "nu0"),
+    "coarse_steps": ("coarse", "steps"),
+    "explore_steps": ("coarse", "explore_steps"),
+    "explore_lr": ("coarse", "explore_lr"),
+    "merge_distance": ("coarse", "merge_distance"),
+    "polish_steps": ("polish", "steps"),
+    "polish_nu": ("polish", "nu"),
+    "polish_end": ("polish", "end"),
+    "polish_settle": ("polish", "settle"),
+    "fine_end": ("polish", "fine_end"),
+    "fine_fitness": ("polish", "fine_fitness"),
+    "plane_steps": ("plane", "steps"),
+    "plane_nu": ("plane", "nu"),
+    "plane_neighbours": ("plane", "neighbours"),
+    "plane_epsilon": ("plane", "epsilon"),
+    "coincident_distance": ("plane", "coincident_distance"),
+    "coincident_share": ("plane", "coincident_share"),
+    "select_nu": ("select", "nu"),
+    "doubtful_select": ("select", "doubtful"),
+    "doubt_ratio": ("select", "doubt_ratio"),
+    "distinct_deg": ("select", "distinct_deg"),
+    "max_cost": ("select", "max_cost"),
+    "min_fitness": ("select", "min_fitness"),
+    "fitness_spacings": ("select", "fitness_spacings"),
+    "rounds": ("select", "rounds"),
+    "search_rotations": ("search", "rotations"),
+    "search_radius": ("search", "radius"),
+    "search_spacing": ("search", "spacing"),
+    "search_points": ("search", "points"),
+    "search_nu": ("search", "nu"),
+    "search_cell": ("search", "cell"),
+    "search_keep": ("search", "keep"),
+}
+"""The flat key of every setting: ``{flat key: (group, field)}``."""
+
+_FLAT_NAMES = {place: key for key, place in FLAT_KEYS.items()}
+
+
+class _Checked:
+    """Range checks whose messages name the flat key a user passes."""
+
+    group: ClassVar[str]
+
+    def _name(self, name: str) -> str:
+        return _FLAT_NAMES[(self.group, name)]
+
+    def _require(self, positive: tuple[str, ...] = (), non_negative: tuple[str, ...] = (), unit=()) -> None:
+        for name in positive:
+            if not getattr(self, name) > 0:
+                raise ValueError(f"{self._name(name)} must be > 0, got {getattr(self, name)}")
+        for name in non_negative:
+            if getattr(self, name) < 0:
+                raise ValueError(f"{self._name(name)} must be >= 0, got {getattr(self, name)}")
+        for name in unit:
+            if not 0 <= getattr(self, name) <= 1:
+                raise ValueError(f"{self._name(name)} must be in [0, 1], got {getattr(self, name)}")
+
+
+@dataclass(frozen=True)
+class CoarseOptions(_Checked):
+    """The coarse stage: CD-W from every start, IRLS in round 1, Adam in round 2.
+
+    Attributes:
+        starts: initial rotations of rounds 1 and 2 (:func:`~linereg.registration.poses.axis_rotations`).
+        points: FPS size of the source (the target gets twice as many).
+        sides: every start runs once per entry: ``"both"`` (CD-W, both directions) and/or
+            ``"source"`` (the source-to-target term alone: a partial view inside a whole target).
+        nu0: CD-W's ``nu0`` (a wide window: robust to partial overlap).
+        steps: most IRLS steps of round 1 (:func:`~linereg.registration.coarse.cdw_irls`).
+        explore_steps: Adam steps of round 2 (:func:`~linereg.registration.coarse.cdw_adam`).
+        explore_lr: peak learning rate (cosine decay) of those Adam steps.
+        merge_distance: candidates this close (rotation entries and translation) to an earlier
+            one with the same coarse loss stop and are not polished.
+    """
+
+    group: ClassVar[str] = "coarse"
+    starts: int = 4
+    points: int = 256
+    sides: tuple[str, ...] = ("both", "source")
+    nu0: float = 2.0
+    steps: int = 80
+    explore_steps: int = 100
+    explore_lr: float = 0.03
+    merge_distance: float = 0.01
+
+    def __post_init__(self) -> None:
+        self._require(("points", "nu0", "explore_lr"), ("steps", "explore_steps", "merge_distance"))
+        sides = tuple(self.sides)
+        if not sides or set(sides) - {"both", "source"} or len(set(sides)) < len(sides):
+            raise ValueError(f"coarse_sides must be distinct entries of 'both' and 'source', got {self.sides!r}")
+        object.__setattr__(self, "sides", sides)
+        axis_rotations(self.starts)
+
+
+@dataclass(frozen=True)
+class PolishOptions(_Checked):
+    """The Welsch IRLS polish of every candidate (:func:`~linereg.registration.welsch.welsch_irls`).
+
+    Attributes:
+        steps: IRLS steps with :func:`~linereg.registration.welsch.polish_scales`.
+        nu: first IRLS scale.
+        end: last IRLS scale, in target point spacings.
+        settle: most further steps at the last scale, each candidate until it stops moving.
+        fine_end: when the chosen pose has a fitness of at least ``fine_fitness`` (the source lies
+            on the target: a view inside the whole), its polish goes on with scales falling from
+            ``end`` to this, in spacings (:func:`~linereg.registration.welsch.fine_scales`). A
+            partial overlap (real scans: fitness 0.70-0.73 on 3DMatch) stays at ``end``.
+        fine_fitness: that fitness, within ``fitness_spacings`` target point spacings.
+    """
+
+    group: ClassVar[str] = "polish"
+    steps: int = 20
+    nu: float = 0.05
+    end: float = 0.3
+    settle: int = 60
+    fine_end: float = 0.1
+    fine_fitness: float = 0.95
+
+    def __post_init__(self) -> None:
+        self._require(("nu", "end", "fine_end"), ("steps", "settle"), ("fine_fitness",))
+
+
+@dataclass(frozen=True)
+class PlaneOptions(_Checked):
+    """Plane-to-plane steps after the fine polish (:func:`~linereg.registration.planes.plane_to_plane_irls`).
+
+    They run when the clouds are independent samplings of the surface: fewer than
+    ``coincident_share`` of the source points lie within ``coincident_distance`` target point
+    spacings of a target point (clouds cut from one sampling share points, and a point-to-point
+    fit is exact there).
+
+    Attributes:
+        steps: Gauss-Newton steps (0: never).
+        nu: Welsch scale, in target point spacings.
+        neighbours, epsilon: the points of each cloud's local planes and their thickness
+            (:func:`~linereg.registration.planes.surface_covariances`).
+        coincident_distance, coincident_share: that test.
+    """
+
+    group: ClassVar[str] = "plane"
+    steps: int = 10
+    nu: float = 1.0
+    neighbours: int = 10
+    epsilon: float = 0.01
+    coincident_distance: float = 0.02
+    coincident_share: float = 0.01
+
+    def __post_init__(self) -> None:
+        self._require(("nu", "epsilon", "coincident_distance"), ("steps",), ("coincident_share",))
+        if self.neighbours < 3:
+            raise ValueError(f"plane_neighbours must be >= 3 (a plane needs 3 points), got {self.neighbours}")
+
+
+@dataclass(frozen=True)
+class SelectOptions(_Checked):
+    """The choice among the candidates, and the doubt that sends the solver to the next round.
+
+    A pose is doubtful when another candidate more than ``distinct_deg`` away costs less than
+    ``doubt_ratio`` times its cost, or its cost exceeds ``max_cost``, or fewer than
+    ``min_fitness`` of the source points lie within ``fitness_spacings`` target point spacings of
+    the target. A doubtful pose sends the solver to the next round: 2, Adam from the same starts;
+    3, the pose search (``rounds`` caps them).
+
+    Attributes:
+        nu: scale of the selection cost :func:`~linereg.registration.welsch.fixed_scale_cost`.
+        doubtful: the final choice after a doubtful first round: ``"polish"``, the lowest polish
+            objective (the fixed-scale cost at the polish's last scale), or ``"fixed"``, the
+            lowest cost at ``nu``.
+        doubt_ratio, distinct_deg, max_cost: that test.
+        min_fitness: fitness below which the fit is doubtful (a right pose of a view inside the
+            whole target scores 0.99-1, a wrong basin 0.7-0.87).
+        fitness_spacings: inlier distance of that fitness, in target point spacings.
+        rounds: most rounds (1..3).
+    """
+
+    group: ClassVar[str] = "select"
+    nu: float = 0.03
+    doubtful: str = "polish"
+    doubt_ratio: float = 1.25
+    distinct_deg: float = 10.0
+    max_cost: float = 0.5
+    min_fitness: float = 0.985
+    fitness_spacings: float = 3.0
+    rounds: int = 3
+
+    def __post_init__(self) -> None:
+        self._require(("nu", "distinct_deg", "max_cost", "fitness_spacings"), unit=("min_fitness",))
+        if self.doubt_ratio < 1:
+            raise ValueError(f"doubt_ratio must be >= 1, got {self.doubt_ratio}")
+        if self.doubtful not in ("polish", "fixed"):
+            raise ValueError(f"doubtful_select must be 'polish' or 'fixed', got {self.doubtful!r}")
+        if self.rounds not in (1, 2, 3):
+            raise ValueError(f"rounds must be 1, 2 or 3, got {self.rounds}")
+
+
+@dataclass(frozen=True)
+class SearchOptions(_Checked):
+    """The third round's pose search (:func:`~linereg.registration.search.pose_search`).
+
+    Attributes:
+        rotations: rotations searched (:func:`~linereg.registration.poses.spread_rotations`).
+        radius: largest translation; spacing: the translation step.
+        points: FPS size of the source.
+        nu: Welsch scale of the cost; cell: cell side of its cost table.
+        keep: best distinct poses (``distinct_deg`` apart) from which the one-sided coarse IRLS runs.
+    """
+
+    group: ClassVar[str] = "search"
+    rotations: int = 600
+    radius: float = 0.5
+    spacing: float = 0.1
+    points: int = 64
+    nu: float = 0.07
+    cell: float = 0.05
+    keep: int = 24
+
+    def __post_init__(self) -> None:
+        self._require(tuple(f.name for f in fields(self)))
+
+
+_GROUPS: dict[str, type] = {
+    "coarse": CoarseOptions,
+    "polish": PolishOptions,
+    "plane": PlaneOptions,
+    "select": SelectOptions,
+    "search": SearchOptions,
+}
+
+
+@dataclass(frozen=True)
+class RobustOptions:
+    """Settings of :class:`~linereg.registration.robust.RobustRegistration`, one group per stage."""
+
+    coarse: CoarseOptions = field(default_factory=CoarseOptions)
+    polish: PolishOptions = field(default_factory=PolishOptions)
+    plane: PlaneOptions = field(default_factory=PlaneOptions)
+    select: SelectOptions = field(default_factory=SelectOptions)
+    search: SearchOptions = field(default_factory=SearchOptions)
+
+    @classmethod
+    def from_mapping(cls, options: Mapping[str, Any]) -> RobustOptions:
+        """Options from flat keys (:data:`FLAT_KEYS`) and/or group mappings (``{"polish": {"steps": 30}}``).
+
+        Raises:
+            TypeError: an unknown key, naming it and listing the known ones.
+            ValueError: a value out of range, naming its flat key.
+        """
+        unknown = sorted(key for key in options if key not in FLAT_KEYS and key not in _GROUPS)
+        if unknown:
+            raise TypeError(f"unknown option(s) {unknown}; known: {sorted(FLAT_KEYS)}")
+        values: dict[str, dict[str, Any]] = {group: {} for group in _GROUPS}
+        for key, value in options.items():
+            if key in _GROUPS:
+                if not isinstance(value, Mapping):
+                    raise TypeError(f"{key}: expected a mapping of {_GROUPS[key].__name__} fields, got {value!r}")
+                known = {f.name for f in fields(_GROUPS[key])}
+                extra = sorted(set(value) - known)
+                if extra:
+                    raise TypeError(f"unknown {key} option(s) {extra}; known: {sorted(known)}")
+                values[key].update(value)
+            else:
+                group, name = FLAT_KEYS[key]
+                values[group][name] = value
+        return cls(**{group: _GROUPS[group](**settings) for group, settings in values.items()})
+
+
+def robust_options(options: RobustOptions | Mapping[str, Any] | None) -> RobustOptions:
+    """``options`` as :class:`RobustOptions` (``None``: the defaults; a mapping: :meth:`RobustOptions.from_mapping`)."""
+    if options is None:
+        return RobustOptions()
+    if isinstance(options, RobustOptions):
+        return options
+    return RobustOptions.from_mapping(options)

@@ -1,0 +1,113 @@
+"""``scripts/studies/``: the index lists every study script, and the ones that read a training run
+print their tables (tests/test_scripts.py starts every script)."""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+import pytest
+import torch
+from hydra import compose, initialize_config_dir
+
+from linereg.train import loop
+
+ROOT = Path(__file__).resolve().parent.parent
+STUDIES = ROOT / "scripts" / "studies"
+SCRIPTS = sorted(path.stem for path in STUDIES.glob("*.py"))
+
+
+@pytest.fixture(scope="module")
+def trained_run(tmp_path_factory):
+    """A tiny RPM-Net run folder."""
+    run_dir = tmp_path_factory.mktemp("run")
+    overrides = ["debug=tiny", f"paths.output_dir={run_dir}", "model.num_neighbors=8", "loss.num_lines=300"]
+    with initialize_config_dir(str(ROOT / "configs"), version_base="1.3"):
+        cfg = compose("train", overrides=[f"paths.root_dir={ROOT}", *overrides])
+    loop.train(cfg)
+    return run_dir
+
+
+def test_the_index_lists_every_study_script_and_its_page():
+    index = (STUDIES / "README.md").read_text()
+    listed = {line.split("`")[1].removesuffix(".py") for line in index.splitlines() if line.startswith("| `")}
+    assert listed == set(SCRIPTS)
+    pages = re.findall(r"\]\(([^)]+\.md)\)", index)
+    assert len(pages) == len(SCRIPTS) and all((STUDIES / page).resolve().is_file() for page in pages)
+
+
+def test_loss_at_gt_script_counts_pairs_per_loss(trained_run, capsys):
+    from scripts.studies import loss_at_gt
+
+    assert loss_at_gt.main([str(trained_run), "--lines", "500"]) == 0
+    rows = [line for line in capsys.readouterr().out.splitlines() if line.startswith("| ") and " of 2 |" in line]
+    assert len(rows) == 4 and rows[2].startswith("| chamfer (CD) |")
+
+
+def test_loss_minimum_script_rows_per_loss(trained_run, capsys):
+    from scripts.studies import loss_minimum
+
+    argv = [str(trained_run), "--lines", "300", "--nu0", "0.5", "2", "--iterations", "5"]
+    assert loss_minimum.main(argv) == 0
+    out = capsys.readouterr().out
+    assert out.startswith("2 test pairs of")
+    rows = [line.split(" | ") for line in out.splitlines() if line.startswith("| ") and "---" not in line]
+    assert [row[0] for row in rows[1:]] == [
+        "| chamfer (CD)",
+        "| line metric, 300 lines, nu0 = 0.5",
+        "| line metric, 300 lines, nu0 = 2",
+    ]
+    assert all(float(value) >= 0 for row in rows[1:] for value in row[1].split(" / "))
+    assert all(row[2].endswith(" of 2 pairs") and 0 <= int(row[2].split()[0]) <= 2 for row in rows[1:])
+
+
+def test_distance_to_minimum_returns_to_the_minimum_of_an_exact_copy():
+    """Chamfer between a cloud and its moved copy is 0 only at the true pose: Adam finds it from 4 deg off."""
+    from linereg.losses import build_loss
+    from linereg.registration.solvers import Stage
+    from linereg.se3 import se3_exp, transform_points
+    from scripts.studies.loss_minimum import distance_to_minimum
+
+    generator = torch.Generator().manual_seed(0)
+    src = torch.rand(200, 3, generator=generator, dtype=torch.float64) - 0.5
+    gt = se3_exp(torch.tensor([[0.3, -0.2, 0.5, 0.1, 0.0, -0.1]], dtype=torch.float64))[0]
+    tgt = transform_points(gt, src)
+    off = se3_exp(torch.tensor([[0.05, 0.03, -0.04, 0.02, -0.01, 0.03]], dtype=torch.float64))[0] @ gt
+    stage = Stage(loss={}, iterations=300, lr=0.005)
+    chamfer = build_loss({"name": "chamfer"})
+    err_r, err_t = distance_to_minimum(chamfer, src, tgt, gt, Stage(loss={}, iterations=0, lr=0.005), start=off)
+    assert err_r > 3.5 and err_t > 0.05  # no iteration: the start itself
+    err_r, err_t = distance_to_minimum(chamfer, src, tgt, gt, stage, start=off)
+    assert err_r < 0.05 and err_t < 1e-3
+    assert distance_to_minimum(chamfer, src, tgt, gt, stage)[0] < 0.05  # from the ground truth it stays
+
+
+def test_check_iterations_script_rows_per_iteration_and_per_score(trained_run, capsys):
+    from scripts.studies import check_iterations
+
+    run = str(trained_run)
+    argv = [run, "--iterations", "3", "--lines", "300", "--draws", "0", "1", "--keep-fractions", "1", "0.5"]
+    assert check_iterations.main(argv) == 0
+    out = capsys.readouterr().out
+    assert out.startswith("4 test pairs of")  # 2 pairs, 2 draws
+    rows = [line.split(" | ") for line in out.splitlines() if line.startswith("| ") and "---" not in line]
+    per_iteration = {row[0]: float(row[1]) for row in rows if "every pair" in row[0]}
+    # header, 3 iterations, the bound, 8 scores (4 losses, 2 trimmed fits, RPM-Net's 2 assignment fits)
+    assert len(per_iteration) == 3 and len(rows) == 1 + 3 + 1 + 4 + 2 + 2
+    kept = {row[0]: row[1:] for row in rows}
+    assert kept["| lowest trimmed Chamfer (keep 1) per pair"] == kept["| lowest chamfer (CD) per pair"]
+    assert "| lowest assignment-weighted Chamfer per pair" in kept
+    assert "| lowest Chamfer trimmed to the assignment's mass per pair" in kept
+    bound = float(next(row[1] for row in rows if "a bound" in row[0]))
+    assert bound <= min(per_iteration.values()) + 1e-9
+    assert all(bound <= float(row[1]) + 1e-9 for row in rows if row[0].startswith("| lowest"))
+
+
+def test_check_iterations_pads_a_solver_that_stopped_early():
+    """FMR may stop before ``test_iters``: its later rows repeat its last estimate's, so draws line up."""
+    from scripts.studies.check_iterations import _repeat_last
+
+    rows = torch.tensor([[3.0, 1.0], [2.0, 4.0]])
+    padded = _repeat_last(rows, 4)
+    assert padded.shape == (4, 2) and torch.equal(padded[:2], rows) and torch.equal(padded[2:], rows[1:].expand(2, 2))
+    assert torch.equal(_repeat_last(rows, 2), rows)

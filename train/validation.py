@@ -1,0 +1,182 @@
+"""Scoring a training run: validation during training, the best checkpoint, the final evaluation.
+
+* :class:`Monitor`: the monitored validation metric and its best value so far (``best.pt``);
+* :class:`RunEvaluator`: the run's model on a split, its errors measured on the iterate chosen
+  by the run's ``iterate`` rule (:mod:`linereg.registration.iterates`; the loss sees every
+  iterate), and the final evaluation written to ``<run>/evaluation/``;
+* :func:`write_run_metrics`: ``<run>/metrics.json``.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import warnings
+from collections.abc import Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import torch
+from torch import nn
+from torch.utils.data import Dataset
+
+from linereg.registration.iterates import IterateRule
+from linereg.train import distributed
+from linereg.train.evaluate import Evaluation, evaluate_model, report, write_evaluation
+
+if TYPE_CHECKING:
+    from linereg.train.loop import TrainerSettings
+
+
+@dataclass
+class Monitor:
+    """The validation metric that chooses ``best.pt``, and its best value so far.
+
+    Attributes:
+        metric: the monitored key (``trainer.monitor``); becomes ``val/loss`` when the
+            validation data has no ground truth.
+        mode: ``"min"`` or ``"max"``.
+        value: the best value so far (``None``: none yet).
+        epoch: the epoch that reached it.
+    """
+
+    metric: str
+    mode: str = "min"
+    value: float | None = None
+    epoch: int | None = None
+
+    def state(self) -> dict[str, Any]:
+        """``{"metric", "value", "epoch"}``: the ``best`` entry of a checkpoint."""
+        return {"metric": self.metric, "value": self.value, "epoch": self.epoch}
+
+    def load(self, state: Mapping[str, Any]) -> None:
+        """Restore :meth:`state`."""
+        self.metric = state.get("metric") or self.metric
+        self.value, self.epoch = state["value"], state["epoch"]
+
+    def read(self, metrics: Mapping[str, float]) -> float | None:
+        """The monitored value in ``metrics`` (``None`` when empty); falls back to ``val/loss``
+        on unlabelled validation data, with a warning.
+
+        Raises:
+            KeyError: the metric is not among the validation metrics (they are listed).
+        """
+        if not metrics:
+            return None
+        if self.metric not in metrics:
+            if "val/loss" in metrics and "val/err_r_deg_mean" not in metrics:
+                warnings.warn(
+                    f"trainer.monitor={self.metric!r} is unavailable (the validation data has no ground truth); "
+                    "selecting the best checkpoint by val/loss",
+                    stacklevel=2,
+                )
+                self.metric = "val/loss"
+            else:
+                raise KeyError(
+                    f"trainer.monitor={self.metric!r} is not a validation metric; available: {sorted(metrics)}"
+                )
+        return float(metrics[self.metric])
+
+    def update(self, value: float | None, epoch: int) -> bool:
+        """Record ``value`` of ``epoch`` when it beats the best so far; whether it did."""
+        if value is None or not math.isfinite(value):
+            return False
+        if self.value is not None and not (value < self.value if self.mode == "min" else value > self.value):
+            return False
+        self.value, self.epoch = value, epoch
+        return True
+
+
+class RunEvaluator:
+    """A training run's model scored on its splits.
+
+    Args:
+        model: the model (unwrapped from DDP).
+        loss: the run's loss, reported beside the errors.
+        settings: the run's trainer settings (evaluation batch size, points, workers,
+            alpha-recall thresholds, progress bars).
+        device: where to compute.
+        amp: autocast dtype of the forward (``None``: float32).
+        iterate: the rule choosing the iterate whose errors are measured.
+    """
+
+    def __init__(
+        self,
+        model: nn.Module,
+        loss: nn.Module,
+        settings: TrainerSettings,
+        device: torch.device,
+        amp: torch.dtype | None,
+        iterate: IterateRule,
+    ) -> None:
+        self.model = model
+        self.loss = loss
+        self.settings = settings
+        self.device = device
+        self.amp = amp
+        self.iterate = iterate
+
+    def evaluate(
+        self, dataset: Dataset, *, keep: int = 0, description: str = "validate", max_batches: int | None = None
+    ) -> Evaluation:
+        """The model on ``dataset`` (this process only; ``max_batches``: a prefix; ``keep``: pairs for figures)."""
+        loader = distributed.make_loader(
+            dataset,
+            batch_size=self.settings.eval_batch_size,
+            num_points=self.settings.num_points,
+            shuffle=False,
+            num_workers=self.settings.num_workers,
+        )
+        return evaluate_model(
+            self.model,
+            loader,
+            device=self.device,
+            loss=self.loss,
+            amp=self.amp,
+            max_batches=max_batches,
+            keep=keep,
+            progress=self.settings.progress,
+            description=description,
+            iterate=self.iterate,
+        )
+
+    def final(
+        self, dataset: Dataset, split: str, out_dir: Path, *, name: str, info: Mapping[str, Any], keep: int
+    ) -> dict[str, float]:
+        """Evaluate on the ``split`` pairs, write ``out_dir`` and print the tables.
+
+        Returns:
+            ``{"<split>/<metric>": value}``, and ``"<split>/identity/<metric>"`` on labelled data.
+        """
+        evaluation = self.evaluate(dataset, keep=keep, description=split)
+        alphas = self.settings.alphas
+        write_evaluation(evaluation, out_dir, name=name, alphas=alphas, info={**info, "iterate": self.iterate_info()})
+        metrics = {f"{split}/{k}": v for k, v in evaluation.metrics(alphas).items()}
+        if evaluation.labelled:
+            metrics.update({f"{split}/identity/{k}": v for k, v in evaluation.metrics(alphas, identity=True).items()})
+        print(f"\nEvaluation of {info['checkpoint']} on the {split!r} split of {info['dataset']!r}:\n")
+        print(report(name, evaluation, alphas))
+        return metrics
+
+    def iterate_info(self) -> dict[str, Any]:
+        """The iterate rule as the ``iterate`` entry of ``metrics.json``."""
+        return {"rule": self.iterate.rule, "keep_fraction": self.iterate.keep_fraction}
+
+
+def write_run_metrics(run_dir: Path, content: Mapping[str, Any]) -> Path:
+    """Write ``content`` as ``<run_dir>/metrics.json`` (non-finite floats as strings)."""
+    path = run_dir / "metrics.json"
+    path.write_text(json.dumps(_finite(content), indent=2))
+    return path
+
+
+def _finite(item: Any) -> Any:
+    """``item`` with non-finite floats turned into strings, for strict JSON."""
+    if isinstance(item, float) and not math.isfinite(item):
+        return str(item)
+    if isinstance(item, Mapping):
+        return {k: _finite(v) for k, v in item.items()}
+    if isinstance(item, list | tuple):
+        return [_finite(v) for v in item]
+    return item

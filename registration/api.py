@@ -180,7 +180,7 @@ class LearnedRegistration:
         predicted = run_centered(self._predict, src, tgt)
         info: dict[str, Any] = {
             "checkpoint": self.checkpoint,
-            "iterate": {"rule": self.iterate.rule, "keep_fraction": self.iterate.keep_fraction},
+            "iterate": self.iterate.as_config(),
             "network_transform": predicted.transform.tolist(),
         }
         if self.refiner is None:

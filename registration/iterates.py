@@ -64,6 +64,10 @@ class IterateRule:
             raise ValueError(f"unknown iterate key(s) {unknown}; accepted: {sorted(accepted)}")
         return cls(**{key: value for key, value in config.items() if value is not None})
 
+    def as_config(self) -> dict[str, Any]:
+        """The rule as an ``iterate:`` block (``{"rule": ..., "keep_fraction": ...}``)."""
+        return {"rule": self.rule, "keep_fraction": self.keep_fraction}
+
     def select(
         self,
         transforms: Sequence[torch.Tensor],

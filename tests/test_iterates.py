@@ -169,3 +169,9 @@ def test_a_trained_network_answers_with_its_runs_iterate(tmp_path, iterate, expe
     angle = math.degrees(float(rotation_angle(torch.from_numpy(result.transform[:3, :3]))))
     assert angle == pytest.approx(expected_deg, abs=1e-4)
     assert result.info["iterate"]["rule"] == (iterate or {"rule": "last"})["rule"]
+
+
+def test_a_rule_round_trips_through_its_config_block():
+    rule = IterateRule("best_fit", 0.9)
+    assert rule.as_config() == {"rule": "best_fit", "keep_fraction": 0.9}
+    assert IterateRule.from_config(rule.as_config()) == rule

@@ -358,7 +358,7 @@ def evaluate(cfg: DictConfig) -> dict[str, Any]:
         "dataset": dataset_config.get("name"),
         "split": cfg.split,
         "epoch": state["progress"]["epoch"],
-        "iterate": {"rule": iterate.rule, "keep_fraction": iterate.keep_fraction},
+        "iterate": iterate.as_config(),
     }
     content = write_evaluation(evaluation, output_dir, name=name, alphas=list(cfg.alphas), info=info)
     print(report(name, evaluation, list(cfg.alphas)))

@@ -161,7 +161,7 @@ class RunEvaluator:
 
     def iterate_info(self) -> dict[str, Any]:
         """The iterate rule as the ``iterate`` entry of ``metrics.json``."""
-        return {"rule": self.iterate.rule, "keep_fraction": self.iterate.keep_fraction}
+        return self.iterate.as_config()
 
 
 def write_run_metrics(run_dir: Path, content: Mapping[str, Any]) -> Path:

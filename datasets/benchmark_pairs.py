@@ -20,9 +20,18 @@ function returning a list of labelled :class:`~linereg.structures.PairSample`, d
     model, 1024 points each, in ``[-1, 1]^3``), then ``pairs`` (100) random poses of the target
     drawn from the paper's composite transform (``max_angle_deg``, ``max_translation``).
 ``3dmatch``
-    Real scans with ground truth: 3DMatch redkitchen fragments 0 and 4 (``gt.log``: source =
-    fragment 4, target = fragment 0) and the GeoTransformer demo pair (``p_ref = gt @ p_src``),
-    2048 points each, scaled into ``[-5, 5]^3`` as the paper's Real dataset.
+    Real scans with ground truth, in metres (30k random points per cloud): any folder in the 3DMatch layout
+    (one scene of ``cloud_bin_<i>.ply`` + ``gt.log``, or a folder of scenes; pairs whose
+    fragments are absent are skipped); by default the shared redkitchen fragments 0 and 4
+    (``gt.log``: source = fragment 4, target = fragment 0) and the GeoTransformer demo pair
+    (``p_ref = gt @ p_src``). ``meta["overlap"]`` comes from ``gt_overlap.log`` or is measured
+    (share of source points within 3.75 cm of the target after the ground truth).
+``fragments``
+    Real partial-overlap pairs built the way 3DMatch builds its fragments: runs of consecutive
+    depth frames of a posed RGB-D sequence (default: the shared 7-Scenes sequence) fused into
+    fragments, source and target without a common frame, drawn evenly from overlap bins
+    ``[0.2, 0.3)``, ``[0.3, 0.5)``, ``[0.5, 0.8]`` (48 pairs, metres, 30k random points per cloud;
+    :mod:`linereg.datasets.fragments`).
 ``folder``
     The user's pairs ``<name>_src/_tgt.<ext>`` + ``<name>_gt.txt`` (``datasets.pairs_folder``).
 ``dataset``
@@ -39,6 +48,7 @@ replacement (seeded) and kept in index order.
 
 from __future__ import annotations
 
+import contextlib
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
@@ -48,9 +58,10 @@ import torch
 
 from linereg.checkpoint import find_checkpoint, load_checkpoint
 from linereg.datasets import build_dataset
+from linereg.datasets.fragments import DEFAULT_BINS, FragmentSettings, fragment_pairs, overlap_ratio
 from linereg.datasets.protocol import ScanSettings, Shape, ShapeViews, build_protocol, finish_scan_pair
 from linereg.datasets.splits import build_split
-from linereg.datasets.threedmatch import ThreeDMatchPairs
+from linereg.datasets.threedmatch import NoPairsError, ThreeDMatchPairs, find_gt_log
 from linereg.io import read_mesh
 from linereg.paths import shared_data_dir
 from linereg.random_poses import random_transform_paper
@@ -59,7 +70,6 @@ from linereg.se3 import transform_normals, transform_points
 from linereg.structures import PairSample
 
 PAIR_SOURCES: Registry[list[PairSample]] = Registry("benchmark pair source")
-
 
 
 def _data_path(root: str | Path | None, default: str) -> Path:
@@ -233,6 +243,37 @@ def dragon_pairs(
     ]
 
 
+def _orthonormal(transform: np.ndarray) -> np.ndarray:
+    """``transform (4, 4)`` with its rotation block replaced by the nearest rotation (SVD)."""
+    fixed = np.array(transform, dtype=np.float64)
+    u, _, vt = np.linalg.svd(fixed[:3, :3])
+    fixed[:3, :3] = u @ np.diag([1.0, 1.0, np.linalg.det(u @ vt)]) @ vt
+    return fixed
+
+
+def _is_scene(folder: Path) -> bool:
+    """Whether ``folder`` holds 3DMatch fragments ``cloud_bin_<i>.ply``."""
+    return any(folder.glob("cloud_bin_*.ply"))
+
+
+def _scenes(root: Path, gt_log: str | None, scan: dict[str, Any], seed: int) -> list[ThreeDMatchPairs]:
+    """The scenes of a 3DMatch folder: ``root`` itself, else its sub-folders with fragments and a gt.log."""
+    settings = {"skip_missing": True, "compute_overlap": True, **scan, "seed": seed}
+    if _is_scene(root):
+        return [ThreeDMatchPairs(root, gt_log=gt_log, **settings)]
+    scenes = []
+    for folder in sorted(path for path in root.iterdir() if path.is_dir() and _is_scene(path)):
+        if find_gt_log(folder) is not None:
+            with contextlib.suppress(NoPairsError):
+                scenes.append(ThreeDMatchPairs(folder, **settings))
+    if not scenes:
+        raise FileNotFoundError(
+            f"{root} is not a 3DMatch scene (cloud_bin_<i>.ply + gt.log) nor a folder of scenes with "
+            "fragments and a gt.log (in the scene or in <scene>-evaluation/)"
+        )
+    return scenes
+
+
 @PAIR_SOURCES.register("3dmatch")
 def threedmatch_pairs(
     *,
@@ -240,49 +281,109 @@ def threedmatch_pairs(
     seed: int = 0,
     root: str | None = None,
     gt_log: str | None = None,
-    demo: str | None = "3dmatch/geotransformer_demo/demo",
-    num_points: int = 2048,
-    half_extent: float | None = 5.0,
+    demo: str | bool | None = None,
+    num_points: int | None = None,
+    dense_points: int | None = 30000,
+    half_extent: float | None = None,
 ) -> list[PairSample]:
-    """Real 3DMatch pairs with ground truth (module docstring).
+    """Real 3DMatch pairs with ground truth, in metres (module docstring).
 
     Args:
         pairs: number of pairs (``None``: all).
         seed: seed of the subsampling and of the draw.
-        root: fragment folder (default ``<shared>/3dmatch/redkitchen_0_4``); pairs of
-            ``gt_log`` whose fragments are absent are skipped.
-        gt_log: the scene's ``gt.log`` (default: the redkitchen log of the GeoTransformer
-            benchmark files in the shared data).
-        demo: folder with ``src.npy``, ``ref.npy``, ``gt.npy`` (``p_ref = gt @ p_src``) added
-            as one more pair, or ``None``.
-        num_points: points per cloud.
-        half_extent: pairs are scaled into ``[-half_extent, half_extent]^3`` (``None``: metres).
+        root: a scene folder (``cloud_bin_<i>.ply`` + ``gt.log`` in it or in a sibling
+            ``<scene>-evaluation/``) or a folder of such scenes; ``None``: the shared redkitchen
+            fragments 0 and 4. Pairs of a ``gt.log`` whose fragments are absent are skipped.
+        gt_log: the ``gt.log`` of a single scene (``None``: found next to the fragments; with
+            ``root=None`` the redkitchen log of the GeoTransformer benchmark files).
+        demo: folder with ``src.npy``, ``ref.npy``, ``gt.npy`` (``p_ref = gt @ p_src``) added as
+            one more pair; ``None``: the shared GeoTransformer demo pair when ``root`` is ``None``,
+            none otherwise; ``False``: none.
+        num_points: FPS size of each cloud after the cap (``None``: keep them all).
+        dense_points: random cap of each cloud before normal estimation (``None``: every point;
+            the classical baselines do not subsample, and FGR takes minutes per pair at 60k).
+        half_extent: scale each pair into ``[-half_extent, half_extent]^3`` (``None``: metres).
+
+    Returns:
+        Pairs with ``meta``: ``source`` (``"3dmatch"``), ``overlap`` (``gt_overlap.log`` when it
+        lists the pair, else measured: share of source points within 3.75 cm of the target),
+        ``scene``, ``src_fragment`` / ``tgt_fragment`` (fragment names) for fragment pairs.
     """
-    fragments = ThreeDMatchPairs(
-        _data_path(root, "3dmatch/redkitchen_0_4"),
-        gt_log=_data_path(gt_log, "3dmatch/geotransformer_demo/benchmarks/3DMatch/7-scenes-redkitchen/gt.log"),
-        skip_missing=True,
-        num_points=num_points,
-        half_extent=half_extent,
-        seed=seed,
-    )
-    found = [fragments[i] for i in range(len(fragments))]
-    if demo is not None:
+    scan = {"num_points": num_points, "dense_points": dense_points, "half_extent": half_extent}
+    if root is None:
+        default_log = "3dmatch/geotransformer_demo/benchmarks/3DMatch/7-scenes-redkitchen/gt.log"
+        scenes = _scenes(_data_path(None, "3dmatch/redkitchen_0_4"), str(_data_path(gt_log, default_log)), scan, seed)
+    else:
+        scenes = _scenes(_data_path(root, root), gt_log, scan, seed)
+    found = []
+    for scene in scenes:
+        for index in range(len(scene)):
+            pair = scene[index]
+            meta = dict(pair.meta)
+            meta.update(src_fragment=meta.pop("source"), tgt_fragment=meta.pop("target"), source="3dmatch")
+            pair.meta = meta
+            found.append(pair)
+    if demo is None and root is None:
+        demo = "3dmatch/geotransformer_demo/demo"
+    if demo:
         folder = _data_path(demo, "3dmatch/geotransformer_demo/demo")
-        settings = ScanSettings(num_points=num_points, half_extent=half_extent)
+        source, target = np.load(folder / "src.npy"), np.load(folder / "ref.npy")
+        gt = _orthonormal(np.load(folder / "gt.npy"))
         found.append(
             finish_scan_pair(
-                np.load(folder / "src.npy"),
-                np.load(folder / "ref.npy"),
-                np.load(folder / "gt.npy"),
-                settings,
+                source,
+                target,
+                gt,
+                ScanSettings(**scan),
                 np.random.default_rng([seed, len(found)]),
                 src_viewpoint=np.zeros(3),
                 tgt_viewpoint=np.zeros(3),
-                meta={"dataset": "geotransformer_demo", "index": len(found), "file": str(folder / "src.npy")},
+                meta={
+                    "dataset": "geotransformer_demo",
+                    "source": "3dmatch",
+                    "index": len(found),
+                    "file": str(folder / "src.npy"),
+                    "overlap": overlap_ratio(source, target, gt),
+                },
             )
         )
     return labelled_pairs([found[i] for i in select_indices(len(found), pairs, seed)], "3dmatch")
+
+
+@PAIR_SOURCES.register("fragments")
+def fragments_source(
+    *,
+    pairs: int | None = 48,
+    seed: int = 0,
+    root: str | None = None,
+    bins: Sequence[Sequence[float]] = DEFAULT_BINS,
+    dense_points: int | None = 30000,
+    num_points: int | None = None,
+    cache_dir: str | None = None,
+    **settings: Any,
+) -> list[PairSample]:
+    """Independently fused fragments of a real room drawn from overlap bins (:mod:`linereg.datasets.fragments`).
+
+    Args:
+        pairs: number of pairs (``None``: 48), split evenly across ``bins``.
+        seed: seed of the draw.
+        root: posed RGB-D sequence folder (default ``<shared>/rgbd/7scenes_first_half/data``).
+        bins: overlap bins ``[[low, high], ...]`` (half-open, the last one closed).
+        dense_points: random cap of each cloud (``None``: the whole fragment).
+        num_points: FPS size of each cloud after the cap (``None``: keep them all).
+        cache_dir: fragment cache folder (``None``: ``$XDG_CACHE_HOME/linereg`` or ``~/.cache/linereg``).
+        **settings: fields of :class:`~linereg.datasets.fragments.FragmentSettings`.
+    """
+    return fragment_pairs(
+        _data_path(root, "rgbd/7scenes_first_half/data"),
+        pairs=48 if pairs is None else pairs,
+        seed=seed,
+        bins=[tuple(b) for b in bins],
+        dense_points=dense_points,
+        num_points=num_points,
+        cache_dir=cache_dir,
+        settings=FragmentSettings(**settings),
+    )
 
 
 @PAIR_SOURCES.register("folder")

@@ -6,7 +6,10 @@ Layout (the geometric-registration benchmark): a scene folder of fragments
 fragment j, target = fragment i, gt_transform = T** (source to target). ``gt.log`` is looked
 up in the scene folder, then in a sibling ``<scene>-evaluation/`` folder (the official
 download), unless ``gt_log`` names it. ``gt_overlap.log`` (``i,j,ratio``) next to it enables
-the overlap filter (the paper keeps pairs with overlap > 0.7; 3DLoMatch is 0.1-0.3).
+the overlap filter (the paper keeps pairs with overlap > 0.7; 3DLoMatch is 0.1-0.3) and gives each
+pair's ``meta["overlap"]``; with ``compute_overlap`` a pair it does not list gets the share of
+its source points within 3.75 cm of a target point after the ground truth
+(:func:`linereg.datasets.fragments.overlap_ratio`).
 """
 
 from __future__ import annotations
@@ -18,6 +21,7 @@ import numpy as np
 
 from linereg.datasets.base import DATASETS, PairDataset, item_rng
 from linereg.datasets.formats import read_log, read_overlap_log
+from linereg.datasets.fragments import overlap_ratio
 from linereg.datasets.protocol import ScanSettings, finish_scan_pair
 from linereg.io import read_point_cloud
 from linereg.structures import PairSample
@@ -25,11 +29,23 @@ from linereg.structures import PairSample
 _STREAM = 21
 
 
-def _find_gt_log(scene: Path) -> Path:
-    """``gt.log`` of a scene folder (in it, or in ``<scene>-evaluation/``)."""
+class NoPairsError(ValueError):
+    """A scene whose ``gt.log`` pairs were all filtered out or miss a fragment file."""
+
+
+def find_gt_log(scene: Path) -> Path | None:
+    """``gt.log`` of a scene folder (in it, or in ``<scene>-evaluation/``), or ``None``."""
     for candidate in (scene / "gt.log", scene.parent / f"{scene.name}-evaluation" / "gt.log"):
         if candidate.is_file():
             return candidate
+    return None
+
+
+def _find_gt_log(scene: Path) -> Path:
+    """:func:`find_gt_log`, or FileNotFoundError."""
+    found = find_gt_log(scene)
+    if found is not None:
+        return found
     raise FileNotFoundError(
         f"no gt.log for the 3DMatch scene {scene} (looked in the folder and in "
         f"{scene.name}-evaluation/); pass gt_log=<path>"
@@ -46,6 +62,7 @@ class ThreeDMatchPairs(PairDataset):
         min_overlap: keep pairs with overlap ratio ``>= min_overlap`` (needs overlaps).
         max_overlap: keep pairs with overlap ratio ``<= max_overlap`` (3DLoMatch: 0.3).
         skip_missing: drop pairs whose fragment files are absent instead of failing.
+        compute_overlap: measure the overlap of pairs without a ``gt_overlap.log`` ratio.
         num_points: points per cloud after FPS (``None`` keeps all).
         dense_points: random cap before normal estimation.
         half_extent: scale pairs into ``[-half_extent, half_extent]^3`` (``None``: metres).
@@ -63,6 +80,7 @@ class ThreeDMatchPairs(PairDataset):
         min_overlap: float | None = None,
         max_overlap: float | None = None,
         skip_missing: bool = False,
+        compute_overlap: bool = False,
         num_points: int | None = 2048,
         dense_points: int | None = 20000,
         half_extent: float | None = 5.0,
@@ -98,13 +116,14 @@ class ThreeDMatchPairs(PairDataset):
         missing_ids = {id(e) for e in missing}
         self.entries = [e for e in entries if id(e) not in missing_ids]
         if not self.entries:
-            raise ValueError(
+            raise NoPairsError(
                 f"no 3DMatch pairs left in {self.root} (gt.log {self.gt_log}, "
                 f"min_overlap={min_overlap}, max_overlap={max_overlap})"
             )
         self.overlaps = overlaps or {}
         self.scan = ScanSettings(num_points=num_points, dense_points=dense_points, half_extent=half_extent)
         self.seed = seed
+        self.compute_overlap = compute_overlap
         self.filters = {"min_overlap": min_overlap, "max_overlap": max_overlap}
 
     def _fragment(self, index: int) -> Path:
@@ -128,6 +147,8 @@ class ThreeDMatchPairs(PairDataset):
         }
         if (entry.i, entry.j) in self.overlaps:
             meta["overlap"] = self.overlaps[(entry.i, entry.j)]
+        elif self.compute_overlap:
+            meta["overlap"] = overlap_ratio(source.xyz, target.xyz, entry.transform)
         return finish_scan_pair(
             source.xyz,
             target.xyz,
@@ -148,6 +169,7 @@ class ThreeDMatchPairs(PairDataset):
             "gt_log": str(self.gt_log),
             "pairs": [[e.i, e.j] for e in self.entries],
             **self.filters,
+            "compute_overlap": self.compute_overlap,
             "scan": vars(self.scan),
             "seed": self.seed,
         }
@@ -162,6 +184,7 @@ def build_threedmatch(
     min_overlap: float | None = None,
     max_overlap: float | None = None,
     skip_missing: bool = False,
+    compute_overlap: bool = False,
     num_points: int | None = 2048,
     dense_points: int | None = 20000,
     half_extent: float | None = 5.0,
@@ -175,6 +198,7 @@ def build_threedmatch(
         min_overlap=min_overlap,
         max_overlap=max_overlap,
         skip_missing=skip_missing,
+        compute_overlap=compute_overlap,
         num_points=num_points,
         dense_points=dense_points,
         half_extent=half_extent,

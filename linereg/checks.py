@@ -7,6 +7,7 @@ every message names the argument and gives the expected and the actual value.
 from __future__ import annotations
 
 import sys
+import warnings
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -15,6 +16,12 @@ if TYPE_CHECKING:
     import torch
 
 ArrayLike = "torch.Tensor | np.ndarray"
+
+RIGID_TOLERANCE = 1e-3
+"""Largest deviation from a rotation that :func:`as_rigid_transform` repairs (float32 or rounded files)."""
+
+_REPAIR_NOTICE = 1e-9
+"""A repair that changes an entry by more than this is reported with a warning."""
 
 
 def is_tensor(value: Any) -> bool:
@@ -111,10 +118,51 @@ def check_transform(transform: ArrayLike, name: str = "transform", *, rigid_atol
     det = np.linalg.det(rot)
     last_row_err = np.abs(matrix[..., 3, :] - np.array([0.0, 0.0, 0.0, 1.0])).max()
     if orth_err > rigid_atol or np.abs(det - 1.0).max() > rigid_atol or last_row_err > rigid_atol:
+        reflection = "; det R < 0: a reflection" if (det < 0).any() else ""
         raise ValueError(
             f"{name} is not a rigid transform: max |R^T R - I| = {orth_err:.2e}, "
-            f"det R = {np.ravel(det)[:4]}, last-row error {last_row_err:.2e} (tolerance {rigid_atol})"
+            f"det R = {np.ravel(det)[:4]}, last-row error {last_row_err:.2e} (tolerance {rigid_atol}){reflection}"
         )
+
+
+def nearest_rotation(matrix: np.ndarray) -> np.ndarray:
+    """The rotation nearest to a ``(3, 3)`` matrix in the Frobenius norm: ``U V^T`` of its SVD,
+    the last column of ``U`` flipped when that would be a reflection."""
+    u, _, vt = np.linalg.svd(matrix)
+    u[:, -1] *= np.sign(np.linalg.det(u @ vt))
+    return u @ vt
+
+
+def as_rigid_transform(matrix: ArrayLike, name: str = "transform", tolerance: float = RIGID_TOLERANCE) -> np.ndarray:
+    """``matrix`` as an exactly rigid float64 ``(4, 4)`` transform, repairing small deviations.
+
+    A rotation block within ``tolerance`` of a rotation (``max |R^T R - I|``, ``|det R - 1|``) and a
+    last row within ``tolerance`` of ``[0, 0, 0, 1]`` are replaced by the nearest rotation and
+    ``[0, 0, 0, 1]``, with a ``UserWarning`` naming ``name`` when an entry changes by more than
+    1e-9; a matrix rigid to within 1e-9 is returned unchanged (as float64).
+
+    Raises:
+        TypeError: not a tensor/array, or not a floating-point dtype.
+        ValueError: not ``(4, 4)``, non-finite entries, or further than ``tolerance`` from a rigid
+            transform (a reflection included); the message names ``name``.
+    """
+    check_transform(matrix, name, rigid_atol=tolerance)
+    if tuple(matrix.shape) != (4, 4):
+        raise ValueError(f"{name} must have shape (4, 4), got {tuple(matrix.shape)}")
+    given = np.array(matrix.detach().cpu().numpy() if is_tensor(matrix) else matrix, dtype=np.float64)
+    rigid = given.copy()
+    rigid[:3, :3] = nearest_rotation(given[:3, :3])
+    rigid[3] = [0.0, 0.0, 0.0, 1.0]
+    if np.abs(rigid - given).max() <= _REPAIR_NOTICE:
+        return given
+    rotation = given[:3, :3]
+    warnings.warn(
+        f"{name}: not exactly rigid, orthonormalised (max |R^T R - I| = "
+        f"{np.abs(rotation.T @ rotation - np.eye(3)).max():.2e}, det R = {np.linalg.det(rotation):.6f})",
+        UserWarning,
+        stacklevel=2,
+    )
+    return rigid
 
 
 def check_same_batch(a: ArrayLike, b: ArrayLike, name_a: str, name_b: str) -> None:

@@ -17,12 +17,13 @@ with the file name in every message. Formats:
 
 from __future__ import annotations
 
+import zipfile
 from pathlib import Path
 from typing import NamedTuple
 
 import numpy as np
 
-from linereg.checks import check_points, check_transform
+from linereg.checks import RIGID_TOLERANCE, check_points, check_transform
 
 POINT_CLOUD_SUFFIXES = (".ply", ".pcd", ".obj", ".xyz", ".txt", ".pts", ".npy", ".npz")
 MESH_SUFFIXES = (".off", ".obj", ".ply", ".stl")
@@ -465,35 +466,66 @@ def _write_obj(path: Path, xyz: np.ndarray, normals: np.ndarray | None) -> None:
 
 
 def read_transform(path: str | Path) -> np.ndarray:
-    """Read a rigid transform from a text file of 16 numbers (4x4) or 12 numbers (3x4).
+    """Read a rigid transform: a 4x4 or 3x4 matrix (the last row ``[0, 0, 0, 1]`` implied).
 
-    Numbers may be separated by whitespace, commas or newlines; ``#`` starts a comment.
+    Formats: ``.npy`` (a 4x4 or 3x4 array), ``.npz`` (exactly one such array), anything else text
+    of 16 or 12 numbers separated by whitespace, commas or newlines (``#`` starts a comment).
+    The matrix is returned as stored; :func:`linereg.checks.as_rigid_transform` makes it exactly rigid.
 
     Returns:
         float64 array of shape ``(4, 4)``.
 
     Raises:
         FileNotFoundError: the file does not exist.
-        ValueError: not 12 or 16 numbers, or not rigid within 1e-4; the message names the file.
+        ValueError: unreadable, not 12/16 numbers or a 4x4/3x4 array, NaN/Inf, or further than
+            :data:`~linereg.checks.RIGID_TOLERANCE` from a rigid transform; the message names the file.
     """
     path = _existing_file(path)
     try:
-        with path.open("r", encoding="utf-8") as stream:
-            lines = [line.split("#", 1)[0].replace(",", " ") for line in stream]
-        values = np.array(" ".join(lines).split(), dtype=np.float64)
-    except (OSError, ValueError, UnicodeDecodeError) as error:
+        stored = _stored_matrix(path)
+    except (OSError, EOFError, ValueError, UnicodeDecodeError, zipfile.BadZipFile) as error:
         raise ValueError(f"{path}: cannot read transform: {error}") from error
-    if values.size == 16:
-        transform = values.reshape(4, 4)
-    elif values.size == 12:
-        transform = np.vstack([values.reshape(3, 4), [0.0, 0.0, 0.0, 1.0]])
-    else:
-        raise ValueError(f"{path}: expected 16 (4x4) or 12 (3x4) numbers, got {values.size}")
     try:
-        check_transform(transform, "transform", rigid_atol=1e-4)
+        transform = _homogeneous(stored)
+        check_transform(transform, "transform", rigid_atol=RIGID_TOLERANCE)
     except ValueError as error:
         raise ValueError(f"{path}: {error}") from error
     return transform
+
+
+def _stored_matrix(path: Path) -> np.ndarray:
+    """The array of a ``.npy``, the one array of a ``.npz``, else the numbers of a text file (flat)."""
+    suffix = path.suffix.lower()
+    if suffix == ".npy":
+        with path.open("rb") as stream:
+            return np.lib.format.read_array(stream, allow_pickle=False)
+    if suffix == ".npz":
+        if not zipfile.is_zipfile(path):
+            raise ValueError("not a zip archive")
+        with np.load(path, allow_pickle=False) as archive:
+            if len(archive.files) != 1:
+                raise ValueError(
+                    f"the archive holds {len(archive.files)} arrays ({', '.join(archive.files) or 'none'}), "
+                    "expected exactly one"
+                )
+            return archive[archive.files[0]]
+    with path.open("r", encoding="utf-8") as stream:
+        lines = [line.split("#", 1)[0].replace(",", " ") for line in stream]
+    return np.array(" ".join(lines).split(), dtype=np.float64)
+
+
+def _homogeneous(stored: np.ndarray) -> np.ndarray:
+    """``stored`` (16 or 12 numbers, or a 4x4 or 3x4 array) as a float64 4x4 matrix."""
+    if not (np.issubdtype(stored.dtype, np.floating) or np.issubdtype(stored.dtype, np.integer)):
+        raise ValueError(f"expected real numbers, got dtype {stored.dtype}")
+    if stored.ndim == 1:
+        if stored.size not in (12, 16):
+            raise ValueError(f"expected 16 (4x4) or 12 (3x4) numbers, got {stored.size}")
+        stored = stored.reshape(-1, 4)
+    if stored.shape not in ((4, 4), (3, 4)):
+        raise ValueError(f"expected a 4x4 or 3x4 matrix, got shape {stored.shape}")
+    matrix = stored.astype(np.float64)
+    return matrix if len(matrix) == 4 else np.vstack([matrix, [0.0, 0.0, 0.0, 1.0]])
 
 
 def write_transform(path: str | Path, transform: np.ndarray) -> None:

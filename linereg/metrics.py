@@ -131,8 +131,7 @@ def registration_errors(
     check_points(src, "src", batched=True)
     if T_pred.ndim != 3 or T_gt.shape != T_pred.shape:
         raise ValueError(
-            f"T_pred and T_gt must both have shape (B, 4, 4), got {tuple(T_pred.shape)} and "
-            f"{tuple(T_gt.shape)}"
+            f"T_pred and T_gt must both have shape (B, 4, 4), got {tuple(T_pred.shape)} and {tuple(T_gt.shape)}"
         )
     check_same_batch(T_pred, src, "T_pred", "src")
     T_pred, T_gt, src = T_pred.double(), T_gt.double(), src.double()
@@ -183,9 +182,7 @@ def summarize(errors: Mapping[str, torch.Tensor | np.ndarray]) -> dict[str, floa
             else np.asarray(values, dtype=np.float64)
         )
         if array.ndim != 1 or array.size == 0:
-            raise ValueError(
-                f"errors[{name!r}] must have shape (P,) with P >= 1, got {array.shape}"
-            )
+            raise ValueError(f"errors[{name!r}] must have shape (P,) with P >= 1, got {array.shape}")
         summary[f"{name}_mean"] = float(array.mean())
         summary[f"{name}_median"] = float(np.median(array))
     return summary

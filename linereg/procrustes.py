@@ -64,17 +64,13 @@ def _check_inputs(src: torch.Tensor, tgt: torch.Tensor, weights: torch.Tensor | 
     if src.ndim != 3:
         raise ValueError(f"src must have shape (B, N, 3), got {tuple(src.shape)}")
     if tgt.shape != src.shape:
-        raise ValueError(
-            f"tgt must have the shape of src {tuple(src.shape)}, got {tuple(tgt.shape)}"
-        )
+        raise ValueError(f"tgt must have the shape of src {tuple(src.shape)}, got {tuple(tgt.shape)}")
     if weights is None:
         return
     if not isinstance(weights, torch.Tensor):
         raise TypeError(f"weights must be a torch.Tensor or None, got {type(weights).__name__}")
     if weights.shape != src.shape[:2]:
-        raise ValueError(
-            f"weights must have shape (B, N) = {tuple(src.shape[:2])}, got {tuple(weights.shape)}"
-        )
+        raise ValueError(f"weights must have shape (B, N) = {tuple(src.shape[:2])}, got {tuple(weights.shape)}")
 
 
 def _nearest_rotation(M: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -141,9 +137,7 @@ def weighted_procrustes(
     weights64 = torch.ones_like(src64[..., 0]) if weights is None else weights.double()
 
     finite_points = torch.isfinite(src64).all(2).all(1) & torch.isfinite(tgt64).all(2).all(1)
-    usable_weights = (
-        torch.isfinite(weights64).all(1) & (weights64 >= 0).all(1) & (weights64.sum(1) >= eps)
-    )
+    usable_weights = torch.isfinite(weights64).all(1) & (weights64 >= 0).all(1) & (weights64.sum(1) >= eps)
     src64 = torch.where(finite_points[:, None, None], src64, torch.zeros_like(src64))
     tgt64 = torch.where(finite_points[:, None, None], tgt64, torch.zeros_like(tgt64))
     weights64 = torch.where(usable_weights[:, None], weights64, torch.ones_like(weights64))
@@ -158,8 +152,7 @@ def weighted_procrustes(
     with torch.no_grad():
         singular_values = torch.linalg.svdvals(covariance)
         coordinate_scale = torch.sqrt(
-            (probabilities * src64.square().sum(-1)).sum(1)
-            * (probabilities * tgt64.square().sum(-1)).sum(1)
+            (probabilities * src64.square().sum(-1)).sum(1) * (probabilities * tgt64.square().sum(-1)).sum(1)
         )
         zero_covariance = singular_values[:, 0] <= _ZERO_COVARIANCE_RTOL * coordinate_scale
         rank_deficient = singular_values[:, 1] <= _RANK_RTOL * singular_values[:, 0]
@@ -196,9 +189,7 @@ def _warn_degenerate(fallbacks: int, rank_deficient: int, batch_size: int) -> No
         )
 
 
-def procrustes_naive(
-    src: torch.Tensor, tgt: torch.Tensor, weights: torch.Tensor | None = None
-) -> torch.Tensor:
+def procrustes_naive(src: torch.Tensor, tgt: torch.Tensor, weights: torch.Tensor | None = None) -> torch.Tensor:
     """Reference weighted Kabsch with a plain ``torch.linalg.svd`` (no safeguards; for tests).
 
     Args:
@@ -219,9 +210,7 @@ def procrustes_naive(
     probabilities = (weights / weights.sum(1, keepdim=True))[..., None]
     src_centroid = (probabilities * src).sum(1)
     tgt_centroid = (probabilities * tgt).sum(1)
-    covariance = (probabilities * (tgt - tgt_centroid[:, None])).transpose(1, 2) @ (
-        src - src_centroid[:, None]
-    )
+    covariance = (probabilities * (tgt - tgt_centroid[:, None])).transpose(1, 2) @ (src - src_centroid[:, None])
     U, _, Vh = torch.linalg.svd(covariance)
     reflection = torch.ones_like(src_centroid)
     reflection[:, 2] = torch.linalg.det(U @ Vh)

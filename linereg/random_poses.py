@@ -28,17 +28,14 @@ def _uniform_sampler(generator: GeneratorLike) -> UniformSampler:
     if isinstance(generator, np.random.Generator):
         return lambda shape: torch.from_numpy(generator.random(shape))
     if isinstance(generator, torch.Generator):
-        return lambda shape: torch.rand(
-            shape, generator=generator, dtype=torch.float64, device=generator.device
-        ).cpu()
+        return lambda shape: torch.rand(shape, generator=generator, dtype=torch.float64, device=generator.device).cpu()
     if generator is None:
         return lambda shape: torch.rand(shape, dtype=torch.float64)
     if isinstance(generator, int | np.integer) and not isinstance(generator, bool):
         seeded = torch.Generator().manual_seed(int(generator))
         return lambda shape: torch.rand(shape, generator=seeded, dtype=torch.float64)
     raise TypeError(
-        "generator must be a torch.Generator, numpy.random.Generator, int seed or None, "
-        f"got {type(generator).__name__}"
+        f"generator must be a torch.Generator, numpy.random.Generator, int seed or None, got {type(generator).__name__}"
     )
 
 
@@ -62,8 +59,7 @@ def _euler_translation_transform(
     _check_batch_size(batch_size)
     if max_angle_deg < 0 or max_translation < 0:
         raise ValueError(
-            f"ranges must be non-negative, got max angle {max_angle_deg} deg and "
-            f"max translation {max_translation}"
+            f"ranges must be non-negative, got max angle {max_angle_deg} deg and max translation {max_translation}"
         )
     uniform = _uniform_sampler(generator)((batch_size, 6))
     angles = uniform[:, :3] * math.radians(max_angle_deg)
@@ -97,9 +93,7 @@ def random_transform_paper(
     Returns:
         Tensor of shape ``(B, 4, 4)`` giving ``T_tgt_src``.
     """
-    return _euler_translation_transform(
-        batch_size, generator, max_angle_deg, max_translation, dtype, device
-    )
+    return _euler_translation_transform(batch_size, generator, max_angle_deg, max_translation, dtype, device)
 
 
 def random_transform_rpmnet(
@@ -129,9 +123,7 @@ def random_transform_rpmnet(
     Returns:
         Tensor of shape ``(B, 4, 4)`` giving the source perturbation.
     """
-    return _euler_translation_transform(
-        batch_size, generator, rot_mag_deg, trans_mag, dtype, device
-    )
+    return _euler_translation_transform(batch_size, generator, rot_mag_deg, trans_mag, dtype, device)
 
 
 def _unit_vectors(uniform: torch.Tensor) -> torch.Tensor:
@@ -202,9 +194,7 @@ def random_axis_angle_rotation(
     """
     _check_batch_size(batch_size)
     if max_angle_deg < min_angle_deg:
-        raise ValueError(
-            f"max_angle_deg must be >= min_angle_deg, got {max_angle_deg} < {min_angle_deg}"
-        )
+        raise ValueError(f"max_angle_deg must be >= min_angle_deg, got {max_angle_deg} < {min_angle_deg}")
     uniform = _uniform_sampler(generator)((batch_size, 3))
     axis = _unit_vectors(uniform[:, :2])
     angle_range = math.radians(max_angle_deg - min_angle_deg)

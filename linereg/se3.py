@@ -269,8 +269,7 @@ def euler_to_rotmat(angles: torch.Tensor, convention: str = "xyz") -> torch.Tens
         or any(a == b for a, b in itertools.pairwise(convention))
     ):
         raise ValueError(
-            f"convention must be three axis letters from 'xyz' without consecutive repeats, "
-            f"got {convention!r}"
+            f"convention must be three axis letters from 'xyz' without consecutive repeats, got {convention!r}"
         )
     # roma (like SciPy) reads upper-case conventions as intrinsic rotations, i.e. R = R0 R1 R2.
     return roma.euler_to_rotmat(convention.upper(), angles)

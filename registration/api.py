@@ -6,7 +6,7 @@
 
     result = linereg.register("scan_a.ply", "scan_b.ply")          # files, (N, 3) arrays or tensors
     result.transformation                                          # (4, 4) source -> target
-    result.fitness, result.inlier_rmse, result.info["converged"]
+    result.confident, result.fitness, result.inlier_rmse
 
     linereg.register(src, tgt, init=T0)                            # an initial guess (4, 4)
     linereg.register(src, tgt, method="icp_point")                 # any registered method
@@ -24,16 +24,14 @@ from typing import Any
 
 import numpy as np
 
-from linereg.checks import check_points, check_transform, is_tensor
+from linereg.checks import as_rigid_transform, check_points, is_tensor
 from linereg.fps import farthest_point_subset as fps
 from linereg.io import PointCloud, read_point_cloud
-from linereg.registration.evaluation import evaluate_registration, point_spacing
+from linereg.registration.evaluation import assess_registration
 from linereg.registration.methods import METHODS, MethodResult, run_centered, run_with_init
 from linereg.registry import UnknownNameError
 
 DEFAULT_METHOD = "robust"
-QUALITY_POINTS = 2048
-"""FPS size of each cloud for ``fitness`` and ``inlier_rmse`` (:func:`quality`)."""
 _MIN_POINTS = 3
 
 
@@ -44,17 +42,20 @@ class RegistrationResult:
     Attributes:
         transformation: ``(4, 4)`` float64 transform mapping the source onto the target
             (``tgt ≈ R @ src + t``), the initial guess included.
-        fitness: fraction of source points with a target point within ``info["fitness_threshold"]``
-            (Open3D's definition, :func:`~linereg.registration.evaluation.evaluate_registration`).
+        fitness: share of source points with a target point within ``info["fitness_threshold"]``
+            (3 sampling distances of the target unless given: Open3D's definition).
         inlier_rmse: RMS distance of those inlier points (0 without inliers).
+        confident: the pose can be trusted: the same test for every method
+            (:func:`~linereg.registration.evaluation.assess_registration`).
         seconds: wall-clock time of the registration (reading files excluded).
-        info: the method's details: ``method``, ``fitness_threshold``, and for the default solver
-            ``converged`` (false when the pose is doubtful), ``confidence``, ``rounds``, ...
+        info: the method's details: ``method``, ``fitness_threshold``, ``sampling_distance``, and
+            for the default solver ``rounds``, ``candidates``, ``selection``, ...
     """
 
     transformation: np.ndarray
     fitness: float
     inlier_rmse: float
+    confident: bool
     seconds: float
     info: dict[str, Any] = field(default_factory=dict)
 
@@ -101,13 +102,11 @@ def as_cloud(value: Any, name: str) -> tuple[np.ndarray, np.ndarray | None]:
 
 
 def _checked_init(init: Any) -> np.ndarray | None:
+    """``init`` as an exactly rigid ``(4, 4)`` (a near-rigid one orthonormalised with a warning)."""
     if init is None:
         return None
-    transform = init.detach().cpu().numpy() if is_tensor(init) else np.asarray(init)
-    if transform.shape != (4, 4):
-        raise ValueError(f"init must be a (4, 4) rigid transform, got shape {transform.shape}")
-    check_transform(transform, "init", rigid_atol=1e-4)
-    return transform.astype(np.float64)
+    transform = init.detach().cpu().numpy() if is_tensor(init) else np.asarray(init, dtype=np.float64)
+    return as_rigid_transform(transform, "init")
 
 
 class LearnedRegistration:
@@ -192,20 +191,16 @@ class LearnedRegistration:
 
 def quality(
     src: np.ndarray, tgt: np.ndarray, transform: np.ndarray, fitness_threshold: float | None = None
-) -> dict[str, float]:
-    """``fitness``, ``inlier_rmse`` and ``fitness_threshold`` of ``transform (4, 4)`` mapping ``src``
-    onto ``tgt``, on FPS subsets of :data:`QUALITY_POINTS` points of each cloud, for every method.
+) -> dict[str, Any]:
+    """``fitness``, ``inlier_rmse``, ``fitness_threshold``, ``sampling_distance`` and ``confident`` of
+    ``transform (4, 4)`` mapping ``src (N, 3)`` onto ``tgt (M, 3)``: the same test for every method
+    (:func:`~linereg.registration.evaluation.assess_registration`).
 
     Args:
-        src, tgt: ``(N, 3)`` and ``(M, 3)`` clouds.
-        transform: source-to-target transform.
-        fitness_threshold: inlier distance in input units (``None``: 3 times the target's median
-            point spacing).
+        fitness_threshold: inlier distance of ``fitness`` and ``inlier_rmse`` in input units
+            (``None``: 3 sampling distances of the target).
     """
-    src_fit, tgt_fit = fps(src, QUALITY_POINTS), fps(tgt, QUALITY_POINTS)
-    threshold = fitness_threshold or 3.0 * point_spacing(tgt_fit)
-    found = evaluate_registration(src_fit, tgt_fit, threshold, transform)
-    return {"fitness": found.fitness, "inlier_rmse": found.inlier_rmse, "fitness_threshold": threshold}
+    return assess_registration(src, tgt, transform, fitness_threshold)._asdict()
 
 
 def _build(method: Any, device: str | None, options: dict[str, Any]):
@@ -253,7 +248,7 @@ def register(
         device: torch device of the method (``None``: its default, the CPU); only for methods
             that take one (the solvers and networks, not the Open3D baselines).
         fitness_threshold: inlier distance of ``fitness`` / ``inlier_rmse`` in input units
-            (``None``: 3 times the target's median point spacing).
+            (``None``: 3 sampling distances of the target).
         **options: the method's keyword arguments (e.g. ``num_points``, ``options={...}`` of
             the robust solver, ``stages`` of ``adam_loss``, ``refine`` of a network).
 
@@ -281,6 +276,7 @@ def register(
         transformation=transform,
         fitness=float(info.pop("fitness")),
         inlier_rmse=float(info.pop("inlier_rmse")),
+        confident=bool(info.pop("confident")),
         seconds=seconds,
         info=info,
     )

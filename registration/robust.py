@@ -47,6 +47,7 @@ from linereg.fps import farthest_point_subset as fps
 from linereg.knn import NearestNeighbors
 from linereg.registration.coarse import cdw_adam, cdw_irls
 from linereg.registration.evaluation import point_spacing
+from linereg.registration.global_stage import DenseTarget, dense_confident, dense_costs, dense_polish, dense_target
 from linereg.registration.methods import METHODS, MethodResult, run_centered
 from linereg.registration.planes import plane_to_plane_irls, surface_covariances
 from linereg.registration.poses import (
@@ -55,6 +56,7 @@ from linereg.registration.poses import (
     as_matrices,
     axis_rotations,
     distinct_best,
+    merged_into_earlier,
     rotation_gap_deg,
     spread_rotations,
 )
@@ -125,6 +127,8 @@ class _Pair:
 
     src: np.ndarray
     tgt: np.ndarray
+    src_whole: np.ndarray
+    tgt_whole: np.ndarray
     src_coarse: np.ndarray
     tgt_coarse: np.ndarray
     tgt_index: NearestNeighbors
@@ -194,6 +198,8 @@ class RobustRegistration:
         pair = _Pair(
             src=src_s,
             tgt=tgt_s,
+            src_whole=src / radius,
+            tgt_whole=tgt / radius,
             src_coarse=fps(src_s, options.coarse.points),
             tgt_coarse=fps(tgt_s, 2 * options.coarse.points),
             tgt_index=tgt_index,
@@ -247,6 +253,8 @@ class RobustRegistration:
         select = self.options.select
         poses, costs, starts = self._round(1, pair)
         doubtful, confidence, fitness = doubt(select, poses, costs, pair.src, pair.tgt_index, pair.inlier_distance)
+        if doubtful and self.options.global_stage.candidates == "doubtful":
+            return self._judged_rounds(pair, poses, starts)
         rounds = 1
         while doubtful and rounds < select.rounds:
             rounds += 1
@@ -263,6 +271,46 @@ class RobustRegistration:
             )
         choice = {"best": best, "selection": selection, "doubtful": doubtful, "confidence": confidence}
         return poses, costs, {**choice, "fitness": fitness, "rounds": rounds, "starts": starts}
+
+    def _global_round(self, pair: _Pair, dense: DenseTarget) -> Poses:
+        """FPFH + RANSAC and FGR candidates from ``dense_points`` FPS points of each cloud, each with the polish."""
+        from linereg.registration.features import FeatureOptions, global_candidates
+
+        settings = self.options.global_stage
+        src = fps(pair.src_whole, settings.dense_points)
+        found, _ = global_candidates(src, dense.points, FeatureOptions(points=settings.feature_points))
+        poses = (found[:, :3, :3].copy(), found[:, :3, 3].copy())
+        return welsch_irls(poses, pair.src, pair.tgt_index, pair.nus, self.options.polish.settle)
+
+    def _judged_rounds(self, pair: _Pair, poses: Poses, starts: int) -> tuple[Poses, np.ndarray, dict[str, Any]]:
+        """After a doubtful first round: the global candidates join and the dense judgement chooses
+        (:meth:`_judge`); rounds 2 and 3 of the local stages add theirs while the choice stays doubtful."""
+        select = self.options.select
+        dense = dense_target(pair.tgt_whole, self.options.global_stage.dense_points)
+        found = self._global_round(pair, dense)
+        poses, costs = self._judge(_joined(poses, found), pair, dense)
+        rounds = 1
+        doubtful, margin = _dense_doubt(select, poses, costs, pair.src, dense)
+        while doubtful and rounds < select.rounds:
+            rounds += 1
+            more, _, more_starts = self._round(rounds, pair)
+            poses, costs = self._judge(_joined(poses, more), pair, dense)
+            starts += more_starts
+            doubtful, margin = _dense_doubt(select, poses, costs, pair.src, dense)
+        choice = {"best": int(costs.argmin()), "selection": "dense", "doubtful": doubtful, "confidence": margin}
+        return poses, costs, {**choice, "rounds": rounds, "starts": starts, "global": len(found[0]), "dense": dense}
+
+    def _judge(self, poses: Poses, pair: _Pair, dense: DenseTarget) -> tuple[Poses, np.ndarray]:
+        """The ``dense_keep`` distinct candidates of lowest dense cost, after the dense polish, and
+        their dense costs (:mod:`~linereg.registration.global_stage`)."""
+        settings = self.options.global_stage
+        order = np.argsort(dense_costs(poses, pair.src, dense, settings), kind="stable")
+        poses = (poses[0][order], poses[1][order])
+        none = np.zeros(len(order), dtype=bool)
+        kept = np.flatnonzero(~merged_into_earlier(poses, none, none, self.options.coarse.merge_distance))
+        kept = kept[: settings.dense_keep]
+        poses = dense_polish((poses[0][kept], poses[1][kept]), pair.src, dense, settings)
+        return poses, dense_costs(poses, pair.src, dense, settings)
 
     def _finish(self, chosen: Poses, fitness: float, pair: _Pair) -> tuple[Poses, dict[str, Any]]:
         """The fine polish and the plane-to-plane steps of the chosen pose, where they apply."""
@@ -289,16 +337,39 @@ class RobustRegistration:
                 )
         return chosen, {"fine": fine, "coincident": coincident, "plane": plane}
 
+    def _dense_finish(self, chosen: Poses, pair: _Pair, dense: DenseTarget) -> tuple[Poses, dict[str, Any]]:
+        """Plane-to-plane steps of the chosen pose against the dense target (the scans of a
+        partial overlap are independent samplings: a point-to-point fit keeps their offset)."""
+        plane = self.options.plane
+        if plane.steps == 0:
+            return chosen, {"fine": False, "coincident": None, "plane": False}
+        k, epsilon = plane.neighbours, plane.epsilon
+        chosen = plane_to_plane_irls(
+            chosen,
+            pair.src,
+            surface_covariances(pair.src, k, epsilon),
+            dense.index,
+            surface_covariances(dense.points, k, epsilon),
+            plane.nu * dense.spacing * self.options.global_stage.dense_plane,
+            plane.steps,
+        )
+        return chosen, {"fine": False, "coincident": None, "plane": True}
+
     def _solve(self, src, tgt, src_normals, tgt_normals) -> MethodResult:
         pair, radius = self._pair(src, tgt)
         poses, costs, choice = self._rounds(pair)
         best = choice["best"]
-        chosen, finish = self._finish((poses[0][best : best + 1], poses[1][best : best + 1]), choice["fitness"], pair)
+        chosen = (poses[0][best : best + 1], poses[1][best : best + 1])
+        if choice["selection"] == "dense":
+            chosen, finish = self._dense_finish(chosen, pair, choice["dense"])
+        else:
+            chosen, finish = self._finish(chosen, choice["fitness"], pair)
         transform = as_matrices(chosen)[0]
         transform[:3, 3] *= radius
         info = {
-            "converged": not choice["doubtful"],
-            "confidence": choice["confidence"],
+            "doubtful": choice["doubtful"],
+            "margin": choice["confidence"],
+            "global_candidates": choice.get("global", 0),
             "cost": float(costs[best]),
             "rounds": choice["rounds"],
             "starts": choice["starts"],
@@ -307,6 +378,30 @@ class RobustRegistration:
             **finish,
         }
         return MethodResult(transform=transform, info=info)
+
+
+def _joined(first: Poses, second: Poses) -> Poses:
+    """The candidates of ``first`` then ``second``."""
+    return np.concatenate([first[0], second[0]]), np.concatenate([first[1], second[1]])
+
+
+def _dense_doubt(
+    select: SelectOptions, poses: Poses, costs: np.ndarray, src: np.ndarray, dense: DenseTarget
+) -> tuple[bool, float]:
+    """``(doubtful, margin)`` of the lowest dense cost. The score ``1 - cost`` is the soft share of
+    inliers; the choice is doubtful when it fails the confidence test of :func:`linereg.register`
+    or a candidate more than ``distinct_deg`` away scores more than ``1 / doubt_ratio`` of its score;
+    ``margin`` is ``1 - rival score / best score`` (1 without a rival)."""
+    scores = 1.0 - costs
+    best = int(scores.argmax())
+    confident = dense_confident(poses, best, src, dense)
+    rivals = rotation_gap_deg(poses[0], poses[0][best]) > select.distinct_deg
+    if not rivals.any():
+        return not confident, 1.0
+    rival = float(scores[rivals].max())
+    return not confident or rival * select.doubt_ratio > float(scores[best]), 1.0 - rival / max(
+        float(scores[best]), 1e-12
+    )
 
 
 METHODS.register("robust")(RobustRegistration)

@@ -52,6 +52,16 @@ FLAT_KEYS: dict[str, tuple[str, str]] = {
     "search_nu": ("search", "nu"),
     "search_cell": ("search", "cell"),
     "search_keep": ("search", "keep"),
+    "global_candidates": ("global_stage", "candidates"),
+    "feature_points": ("global_stage", "feature_points"),
+    "dense_points": ("global_stage", "dense_points"),
+    "dense_keep": ("global_stage", "dense_keep"),
+    "dense_start": ("global_stage", "dense_start"),
+    "dense_steps": ("global_stage", "dense_steps"),
+    "dense_end": ("global_stage", "dense_end"),
+    "dense_settle": ("global_stage", "dense_settle"),
+    "select_spacings": ("global_stage", "select_spacings"),
+    "dense_plane": ("global_stage", "dense_plane"),
 }
 """The flat key of every setting: ``{flat key: (group, field)}``."""
 
@@ -240,12 +250,64 @@ class SearchOptions(_Checked):
         self._require(tuple(f.name for f in fields(self)))
 
 
+@dataclass(frozen=True)
+class GlobalOptions(_Checked):
+    """The stage for doubtful pairs (:mod:`~linereg.registration.global_stage`): global candidates and
+    the dense judgement of every candidate.
+
+    Attributes:
+        candidates: ``"doubtful"``: the FPFH candidates join after a doubtful first round (and the
+            dense judgement chooses); ``"never"``: the rounds of the local stages alone.
+        feature_points: the FPFH voxel is the spacing of this many FPS target points
+            (:class:`~linereg.registration.features.FeatureOptions` ``points``).
+        dense_points: FPS points of the target the candidates are polished against and judged by.
+        dense_keep: candidates of lowest dense cost (distinct: ``merge_distance`` apart) that get
+            the dense polish.
+        dense_start, dense_steps, dense_end, dense_settle: the dense polish: Welsch scales falling
+            from ``dense_start`` to ``dense_end`` dense spacings
+            in ``dense_steps`` steps, then up to ``dense_settle`` more.
+        select_spacings: scale of the selection cost, in dense spacings.
+        dense_plane: the plane-to-plane steps of the chosen pose run with ``plane_nu`` times this
+            many dense spacings.
+    """
+
+    group: ClassVar[str] = "global_stage"
+    candidates: str = "doubtful"
+    feature_points: int = 3000
+    dense_points: int = 30000
+    dense_keep: int = 4
+    dense_start: float = 4.0
+    dense_steps: int = 10
+    dense_end: float = 0.7
+    dense_settle: int = 20
+    select_spacings: float = 2.0
+    dense_plane: float = 2.0
+
+    def __post_init__(self) -> None:
+        self._require(
+            (
+                "feature_points",
+                "dense_points",
+                "dense_keep",
+                "dense_start",
+                "dense_steps",
+                "dense_end",
+                "select_spacings",
+                "dense_plane",
+            ),
+            ("dense_settle",),
+        )
+        if self.candidates not in ("doubtful", "never"):
+            raise ValueError(f"global_candidates must be 'doubtful' or 'never', got {self.candidates!r}")
+
+
 _GROUPS: dict[str, type] = {
     "coarse": CoarseOptions,
     "polish": PolishOptions,
     "plane": PlaneOptions,
     "select": SelectOptions,
     "search": SearchOptions,
+    "global_stage": GlobalOptions,
 }
 
 
@@ -258,6 +320,7 @@ class RobustOptions:
     plane: PlaneOptions = field(default_factory=PlaneOptions)
     select: SelectOptions = field(default_factory=SelectOptions)
     search: SearchOptions = field(default_factory=SearchOptions)
+    global_stage: GlobalOptions = field(default_factory=GlobalOptions)
 
     @classmethod
     def from_mapping(cls, options: Mapping[str, Any]) -> RobustOptions:

@@ -39,7 +39,20 @@ from linereg.train.benchmark import (
     write_results,
 )
 
-RECORD_KEYS = {"pair", "method", "seconds", "diameter", "transform", "gt_transform", "meta", "info", *ERROR_KEYS}
+RECORD_KEYS = {
+    "pair",
+    "method",
+    "seconds",
+    "diameter",
+    "transform",
+    "gt_transform",
+    "meta",
+    "info",
+    "confident",
+    "fitness",
+    "bbox_diagonal",
+    *ERROR_KEYS,
+}
 
 
 def _tiny_pair(seed: int, num_points: int = 300) -> PairSample:
@@ -278,7 +291,7 @@ def test_threedmatch_pairs_are_aligned_by_their_ground_truth(shared_data):
     pairs = threedmatch_pairs(seed=0)
 
     assert [pair.meta["dataset"] for pair in pairs] == ["threedmatch", "geotransformer_demo"]
-    assert pairs[0].meta["source"] == "cloud_bin_4" and pairs[0].meta["target"] == "cloud_bin_0"
+    assert pairs[0].meta["src_fragment"] == "cloud_bin_4" and pairs[0].meta["tgt_fragment"] == "cloud_bin_0"
     _assert_ground_truth_aligns(pairs, absolute=None)
 
 

@@ -3,12 +3,20 @@
 from __future__ import annotations
 
 import re
+import warnings
 
 import numpy as np
 import pytest
 import torch
 
-from linereg.checks import check_lengths, check_points, check_same_batch, check_transform
+from linereg.checks import (
+    as_rigid_transform,
+    check_lengths,
+    check_points,
+    check_same_batch,
+    check_transform,
+    nearest_rotation,
+)
 from linereg.se3 import se3_exp
 
 
@@ -108,6 +116,74 @@ class TestCheckTransform:
 
     def test_non_rigid_accepted_without_tolerance(self):
         check_transform(torch.eye(4) * 2.0)
+
+
+def _pose(angle: float = 0.4) -> np.ndarray:
+    transform = np.eye(4)
+    c, s = np.cos(angle), np.sin(angle)
+    transform[:3, :3] = [[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]]
+    transform[:3, 3] = [0.5, -1.0, 2.0]
+    return transform
+
+
+class TestAsRigidTransform:
+    def test_a_rigid_matrix_is_returned_unchanged_without_a_warning(self):
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")
+            np.testing.assert_array_equal(as_rigid_transform(_pose(), "gt"), _pose())
+            out = as_rigid_transform(torch.from_numpy(_pose()), "gt")
+        assert isinstance(out, np.ndarray) and out.dtype == np.float64
+
+    def test_a_nearly_rigid_matrix_is_orthonormalised_with_a_warning(self):
+        near = _pose()
+        near[:3, :3] += 5e-4 * np.random.default_rng(0).standard_normal((3, 3))
+        near[3, 0] = 5e-4
+        with pytest.warns(
+            UserWarning, match=r"^init: not exactly rigid, orthonormalised \(max \|R\^T R - I\| = "
+        ) as caught:
+            rigid = as_rigid_transform(near, "init")
+        assert len(caught) == 1 and "\n" not in str(caught[0].message)
+        rotation = rigid[:3, :3]
+        assert abs(np.linalg.det(rotation) - 1.0) < 1e-12
+        np.testing.assert_allclose(rotation.T @ rotation, np.eye(3), atol=1e-12)
+        np.testing.assert_array_equal(rigid[3], [0.0, 0.0, 0.0, 1.0])
+        np.testing.assert_array_equal(rigid[:3, 3], near[:3, 3])
+        np.testing.assert_allclose(rigid, _pose(), atol=2e-3)
+
+    def test_a_float32_matrix_is_accepted(self):
+        with pytest.warns(UserWarning, match="gt: not exactly rigid"):
+            rigid = as_rigid_transform(_pose().astype(np.float32), "gt")
+        assert rigid.dtype == np.float64
+
+    def test_a_matrix_far_from_rigid_is_an_error_naming_the_argument(self):
+        far = _pose()
+        far[:3, :3] += 1e-2 * np.random.default_rng(1).standard_normal((3, 3))
+        with pytest.raises(
+            ValueError, match=r"^gt is not a rigid transform: max \|R\^T R - I\| = .*\(tolerance 0\.001\)"
+        ):
+            as_rigid_transform(far, "gt")
+
+    def test_a_reflection_is_an_error(self):
+        reflection = np.diag([1.0, 1.0, -1.0, 1.0])
+        with pytest.raises(ValueError, match=r"^init is not a rigid transform: .*det R = \[-1\.\].*a reflection"):
+            as_rigid_transform(reflection, "init")
+
+    @pytest.mark.parametrize(
+        ("matrix", "error", "message"),
+        [
+            (np.eye(4)[None], ValueError, r"init must have shape \(4, 4\), got \(1, 4, 4\)"),
+            (np.eye(4, dtype=int), TypeError, "init must have a floating-point dtype"),
+            (np.full((4, 4), np.nan), ValueError, "init contains NaN or Inf entries"),
+        ],
+    )
+    def test_rejects(self, matrix, error, message):
+        with pytest.raises(error, match=message):
+            as_rigid_transform(matrix, "init")
+
+    def test_nearest_rotation_is_a_rotation(self):
+        rotation = nearest_rotation(np.random.default_rng(2).standard_normal((3, 3)))
+        np.testing.assert_allclose(rotation.T @ rotation, np.eye(3), atol=1e-12)
+        assert np.linalg.det(rotation) == pytest.approx(1.0, abs=1e-12)
 
 
 def test_check_same_batch():

@@ -3,12 +3,14 @@
 from __future__ import annotations
 
 import importlib
+import json
 import os
 import re
 import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 from hydra.errors import ConfigCompositionException
 from omegaconf.errors import ConfigAttributeError
@@ -146,3 +148,30 @@ def test_evaluate_takes_the_runs_iterate_rule_unless_overridden():
     assert iterate_rule({}, None) == IterateRule()
     with pytest.raises(ValueError, match=r"iterate\.rule must be one of"):
         iterate_rule(stored, {"rule": "best"})
+
+
+@pytest.mark.shared_data
+def test_register_orthonormalises_geotransformers_ground_truth_with_a_warning(shared_data, tmp_path):
+    demo = shared_data / "3dmatch" / "geotransformer_demo" / "demo"
+    if not (demo / "gt.npy").is_file():
+        pytest.skip(f"{demo} not found")
+    arguments = [f"source={demo / 'src.npy'}", f"target={demo / 'ref.npy'}", f"gt={demo / 'gt.npy'}"]
+    quick = ["+robust.rounds=1", "num_points=512", "progress=false", f"hydra.run.dir={tmp_path}/run"]
+    done = _run(["-m", MODULES["linereg-register"], *arguments, *quick], tmp_path)
+    assert done.returncode == 0, done.stderr[-2000:]
+    (line,) = [line for line in done.stderr.splitlines() if "warning" in line]
+    assert line.startswith("linereg-register: warning: gt: not exactly rigid, orthonormalised (max |R^T R - I| = ")
+    assert "Err_R" in done.stdout
+    assert json.loads((tmp_path / "run" / "result.json").read_text())["warnings"][0] == line.split("warning: ", 1)[1]
+
+
+@pytest.mark.parametrize("argument", ["gt", "init"])
+def test_register_rejects_a_far_from_rigid_transform_in_one_line(argument, tmp_path, monkeypatch, capsys):
+    cloud = np.random.default_rng(0).standard_normal((50, 3)).astype(np.float32)
+    np.save(tmp_path / "a.npy", cloud)
+    np.save(tmp_path / "far.npy", np.diag([1.0, 1.0, 1.01, 1.0]))
+    arguments = ["source=a.npy", "target=a.npy", f"{argument}={tmp_path / 'far.npy'}"]
+    assert _run_in_process("linereg-register", arguments, monkeypatch, tmp_path) == 2
+    (line,) = capsys.readouterr().err.strip().splitlines()
+    assert line.startswith(f"linereg-register: error: {argument}=") and "is not a rigid transform" in line
+    assert not (tmp_path / "outputs").exists()

@@ -58,7 +58,6 @@ def test_default_config_builds():
     build_components(cfg)
 
 
-
 def test_default_is_the_label_free_easy_pose_recipe():
     """``python -m train`` (README, docs/results.md): easy poses only, lr 1e-3 decayed, last checkpoint."""
     cfg = compose_config()
@@ -320,7 +319,9 @@ def test_paper_recipe_at_a_protocol_has_one_scale_for_every_experiment(protocol,
     assert cfg.optimizer.lr == pytest.approx(1e-4)
     full_epochs = {"human": 8, "real": 6}.get(protocol, 2)  # the small training sets get more
     assert [(s.name, s.epochs) for s in Curriculum.from_config(cfg.curriculum).stages] == [
-        ("easy", 3), ("subset", 1), ("full", full_epochs)
+        ("easy", 3),
+        ("subset", 1),
+        ("full", full_epochs),
     ]
     assert cfg.dataset.name == {"airplane": "modelnet40", "human": "mesh_folder", "real": "rgbd_sequence"}.get(
         protocol, "procedural"

@@ -154,7 +154,6 @@ def test_every_source_is_registered():
     }
 
 
-
 class _LockstepPairs(PairDataset):
     """Large random pairs; every process waits for the others before each pair, so that
     concurrent writers of the same cache write each shard at the same moment."""

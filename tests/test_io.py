@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 
 import numpy as np
@@ -263,6 +264,58 @@ def test_transform_errors(tmp_path: Path) -> None:
     (tmp_path / "words.txt").write_text("one two")
     with pytest.raises(ValueError, match=r"words\.txt: cannot read transform"):
         read_transform(tmp_path / "words.txt")
+
+
+def _save_matrix(path: Path, matrix: np.ndarray) -> None:
+    """``matrix`` in the format of ``path``'s suffix (text, ``.npy`` or a one-array ``.npz``)."""
+    if path.suffix == ".npy":
+        np.save(path, matrix)
+    elif path.suffix == ".npz":
+        np.savez(path, transform=matrix)
+    else:
+        np.savetxt(path, matrix, fmt="%.17g")
+
+
+@pytest.mark.parametrize("rows", [4, 3], ids=["4x4", "3x4"])
+@pytest.mark.parametrize("suffix", [".txt", ".npy", ".npz"])
+def test_read_transform_formats(tmp_path: Path, suffix: str, rows: int) -> None:
+    transform = _rigid()
+    _save_matrix(tmp_path / f"T{suffix}", transform[:rows])
+    loaded = read_transform(tmp_path / f"T{suffix}")
+    assert loaded.dtype == np.float64
+    np.testing.assert_array_equal(loaded, transform)
+
+
+def test_read_transform_keeps_a_nearly_rigid_float32_matrix_as_stored(tmp_path: Path) -> None:
+    near = _rigid()
+    near[:3, :3] *= 1.0002
+    np.save(tmp_path / "gt.npy", near.astype(np.float32))
+    np.testing.assert_array_equal(read_transform(tmp_path / "gt.npy"), near.astype(np.float32))
+
+
+@pytest.mark.parametrize(
+    ("name", "write", "message"),
+    [
+        (
+            "two.npz",
+            lambda p: np.savez(p, R=np.eye(3), t=np.zeros(3)),
+            r"holds 2 arrays \(R, t\), expected exactly one",
+        ),
+        ("empty.npz", lambda p: np.savez(p), r"holds 0 arrays"),
+        ("corrupt.npz", lambda p: p.write_bytes(b"PK not a zip"), r"cannot read transform: not a zip archive"),
+        ("corrupt.npy", lambda p: p.write_bytes(b"not an array"), r"cannot read transform: the magic string"),
+        ("objects.npy", lambda p: np.save(p, np.full((4, 4), None)), r"cannot read transform: Object arrays"),
+        ("square.npy", lambda p: np.save(p, np.eye(3)), r"expected a 4x4 or 3x4 matrix, got shape \(3, 3\)"),
+        ("words.npy", lambda p: np.save(p, np.full((4, 4), "a")), r"expected real numbers, got dtype <U1"),
+        ("nan.npy", lambda p: np.save(p, np.full((4, 4), np.nan)), r"transform contains NaN or Inf entries"),
+        ("inf.txt", lambda p: p.write_text("inf " * 16), r"transform contains NaN or Inf entries"),
+        ("far.npz", lambda p: np.savez(p, np.diag([1.0, 1.0, 1.01, 1.0])), r"is not a rigid transform"),
+    ],
+)
+def test_read_transform_file_errors(tmp_path: Path, name: str, write, message: str) -> None:
+    write(tmp_path / name)
+    with pytest.raises(ValueError, match=re.escape(name) + ": .*" + message):
+        read_transform(tmp_path / name)
 
 
 @pytest.mark.parametrize("suffix", [".off", ".obj", ".ply", ".stl"])

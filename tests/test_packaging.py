@@ -140,7 +140,6 @@ def test_every_config_folder_is_packaged():
     tomllib = pytest.importorskip("tomllib")
     packages = set(tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["setuptools"]["packages"])
     folders = {
-        ".".join(("linereg", *path.relative_to(ROOT).parent.parts))
-        for path in (ROOT / "configs").rglob("*.yaml")
+        ".".join(("linereg", *path.relative_to(ROOT).parent.parts)) for path in (ROOT / "configs").rglob("*.yaml")
     }
     assert folders - packages == set(), "config folders missing from [tool.setuptools] packages in pyproject.toml"

@@ -149,7 +149,7 @@ def test_register_command_writes_its_outputs(tmp_path):
     np.testing.assert_allclose(registered.xyz, apply(estimate, src), atol=1e-5)
     saved = json.loads((out / "result.json").read_text())
     assert saved["metrics"]["err_r_deg"] < 1.0 and saved["seconds"] > 0
-    assert saved["fitness"] > 0.9 and 0 < saved["inlier_rmse"] < 0.1 and saved["converged"] is True
+    assert saved["fitness"] > 0.9 and 0 < saved["inlier_rmse"] < 0.1 and saved["confident"] is True
     assert report["source_points"] == 700 and report["target_points"] == 900
     assert not (out / "registration.png").exists()
 

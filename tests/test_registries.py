@@ -91,7 +91,7 @@ CASES: dict[str, tuple[Registry, tuple, dict]] = {
 # Registered names that read a real dataset (shared data): built in their own tests.
 NEEDS_REAL_DATA = {
     "datasets": {"modelnet40", "rgbd_sequence", "threedmatch"},  # tests/test_datasets_shared.py
-    "pair sources": {"3dmatch", "airplane", "dragon", "human", "run"},  # tests/test_benchmark.py
+    "pair sources": {"3dmatch", "airplane", "dragon", "fragments", "human", "run"},  # tests/test_benchmark.py
 }
 
 
@@ -125,9 +125,7 @@ def test_unknown_argument_is_named_with_the_accepted_ones(kind):
             assert option in str(caught.value)
 
 
-@pytest.mark.parametrize(
-    ("kind", "name"), [(kind, name) for kind, (_, _, cases) in CASES.items() for name in cases]
-)
+@pytest.mark.parametrize(("kind", "name"), [(kind, name) for kind, (_, _, cases) in CASES.items() for name in cases])
 def test_every_registered_name_builds(kind, name, data):
     registry, args, cases = CASES[kind]
     options = cases[name](data) if callable(cases[name]) else cases[name]

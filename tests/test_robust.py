@@ -196,7 +196,13 @@ def test_every_flat_key_sets_its_group_field_and_groups_work_too():
     """One mapping from the flat keys users pass to the stage groups: each key lands in its field."""
     defaults = RobustOptions()
     groups = [field.name for field in dataclasses.fields(defaults)]
-    special = {"coarse_sides": ("source",), "doubtful_select": "fixed", "rounds": 2, "doubt_ratio": 1.5}
+    special = {
+        "coarse_sides": ("source",),
+        "doubtful_select": "fixed",
+        "rounds": 2,
+        "doubt_ratio": 1.5,
+        "global_candidates": "never",
+    }
     for key, (group, name) in FLAT_KEYS.items():
         default = getattr(getattr(defaults, group), name)
         value = special[key] if key in special else default + 1 if isinstance(default, int) else 0.9 * default
@@ -222,20 +228,32 @@ def test_robust_registration_recovers_a_partial_view_and_reports_its_quality(par
     assert error_deg(result.transformation, truth) < 0.5
     info = result.info
     assert result.fitness > 0.95 and 0 < result.inlier_rmse < info["fitness_threshold"]
-    assert info["converged"] is True and info["confidence"] > 0.2 and info["rounds"] == 1
+    assert result.confident and info["doubtful"] is False and info["margin"] > 0.2 and info["rounds"] == 1
     assert info["starts"] == 4 * 2 and 1 <= info["candidates"] <= 8 and info["warnings"] == []
     assert info["selection"] == "fixed"
 
 
 def test_a_doubtful_pose_gets_the_later_rounds(partial_pair):
     src, tgt, truth = partial_pair
-    result = METHODS.build({"name": "robust", "num_points": 512, "options": {"max_cost": 1e-6}})(src, tgt)
+    local = {"max_cost": 1e-6, "global_candidates": "never"}
+    result = METHODS.build({"name": "robust", "num_points": 512, "options": local})(src, tgt)
     search_keep = RobustOptions().search.keep
     assert result.info["rounds"] == 3 and result.info["starts"] == 2 * (4 + 4) + search_keep
-    assert result.info["converged"] is False and result.info["selection"] == "polish"
+    assert result.info["doubtful"] is True and result.info["selection"] == "polish"
     assert error_deg(result.transform, truth) < 1.0
-    capped = METHODS.build({"name": "robust", "num_points": 512, "options": {"max_cost": 1e-6, "rounds": 1}})
+    capped = METHODS.build({"name": "robust", "num_points": 512, "options": {**local, "rounds": 1}})
     assert capped(src, tgt).info["rounds"] == 1
+
+
+def test_a_doubtful_first_round_brings_the_global_candidates_and_the_dense_judgement(partial_pair):
+    """A first round made doubtful (``max_cost``): the FPFH candidates join, the dense costs choose,
+    and the confident choice ends the rounds."""
+    src, tgt, truth = partial_pair
+    result = METHODS.build({"name": "robust", "num_points": 512, "options": {"max_cost": 1e-6}})(src, tgt)
+    info = result.info
+    assert info["selection"] == "dense" and info["global_candidates"] >= 2 and info["plane"] is True
+    assert info["rounds"] == 1 and info["doubtful"] is False
+    assert error_deg(result.transform, truth) < 1.0
 
 
 def test_init_is_applied_to_the_source_first(partial_pair):
@@ -338,11 +356,13 @@ def test_the_pose_search_finds_a_view_the_adam_rounds_miss(shared_data):
     stanford["target_points"] = 2048
     pair = select_pairs(stanford, pairs=5, seed=0)[4]
     truth = pair.gt_transform.astype(np.float64)
-    two_rounds = METHODS.build({"name": "robust", "options": {"rounds": 2}})(pair.src_xyz, pair.tgt_xyz)
-    assert error_deg(two_rounds.transform, truth) > 5.0 and two_rounds.info["converged"] is False
-    result = METHODS.build({"name": "robust"})(pair.src_xyz, pair.tgt_xyz)
-    assert result.info["rounds"] == 3 and result.info["converged"] is True
+    local = {"global_candidates": "never"}
+    two_rounds = METHODS.build({"name": "robust", "options": {**local, "rounds": 2}})(pair.src_xyz, pair.tgt_xyz)
+    assert error_deg(two_rounds.transform, truth) > 5.0 and two_rounds.info["doubtful"] is True
+    result = METHODS.build({"name": "robust", "options": local})(pair.src_xyz, pair.tgt_xyz)
+    assert result.info["rounds"] == 3 and result.info["doubtful"] is False
     assert error_deg(result.transform, truth) < 0.5
+    assert error_deg(METHODS.build({"name": "robust"})(pair.src_xyz, pair.tgt_xyz).transform, truth) < 0.5
 
 
 def test_fine_scales_continue_from_the_polish_end():
@@ -406,11 +426,17 @@ def test_doubtful_rounds_choose_the_true_pose_of_a_flipped_airplane_view(shared_
 
     pair = select_pairs({"name": "airplane"}, pairs=40, seed=0)[8]
     truth = pair.gt_transform.astype(np.float64)
-    result = METHODS.build({"name": "robust"})(pair.src_xyz, pair.tgt_xyz)
+    local = {"global_candidates": "never"}
+    result = METHODS.build({"name": "robust", "options": local})(pair.src_xyz, pair.tgt_xyz)
     assert result.info["rounds"] == 3 and result.info["selection"] == "polish"
-    assert error_deg(result.transform, truth) < 1.0 and result.info["converged"] is False
-    fixed = METHODS.build({"name": "robust", "options": {"doubtful_select": "fixed"}})(pair.src_xyz, pair.tgt_xyz)
-    assert error_deg(fixed.transform, truth) > 170.0
+    assert error_deg(result.transform, truth) < 1.0 and result.info["doubtful"] is True
+    fixed = {**local, "doubtful_select": "fixed"}
+    assert (
+        error_deg(METHODS.build({"name": "robust", "options": fixed})(pair.src_xyz, pair.tgt_xyz).transform, truth)
+        > 170
+    )
+    judged = METHODS.build({"name": "robust"})(pair.src_xyz, pair.tgt_xyz)
+    assert judged.info["selection"] == "dense" and error_deg(judged.transform, truth) < 1.0
 
 
 def test_pca_normals_are_the_surface_normals():

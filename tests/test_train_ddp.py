@@ -96,4 +96,3 @@ def test_cuda_request_without_cuda_is_explained(monkeypatch, spec):
 def test_unknown_device_names_the_setting():
     with pytest.raises(ValueError, match=r"device='gpu' is not a device; use auto, cpu, cuda or cuda:N"):
         distributed.resolve_device("gpu", name="device")
-

@@ -176,4 +176,3 @@ class TestRPMNetTranslationRefinement:
     def test_negative_refinement_is_refused(self):
         with pytest.raises(ValueError, match="translation_refinement must be >= 0"):
             MODELS.build({"name": "rpmnet", "translation_refinement": -1})
-

@@ -5,8 +5,23 @@ pairs=N out=<dir>`` (Hydra, ``configs/benchmark.yaml``; ``benchmark=<a folder pa
 short for ``benchmark=folder benchmark.root=<path>``). Every method runs on every pair;
 the errors of the paper's Eq. (``Err_R`` in degrees, ``Err_t`` and ``Err_pw`` in l1 and l2, on
 the pair's source points, :func:`linereg.metrics.registration_errors`) and the time are kept
-per pair and method, then written as ``results.json``, ``table.md`` (mean values as the
-paper's Table 1, then medians, then time and success rates) and ``alpha_recall.png``.
+per pair and method, then written as ``results.json``, ``table.md`` and ``alpha_recall.png``.
+
+``table.md`` holds the paper's Table 1 (means, then medians, time and success rates) and:
+
+* registration recall (3DMatch's definition): the share of pairs with RRE (the geodesic angle of
+  ``R_est^T R_gt``, degrees) at most 15 deg and RTE (``||t_est - t_gt||``, pair units) at most 0.3,
+  and the tighter 5 deg / 0.1, with the mean and median RRE and RTE, the mean time and the identity
+  baseline (the errors of not moving the source). The thresholds are in the pairs' units: metres
+  for the real sources (``3dmatch``, ``fragments``), where this table comes first; for the
+  normalised synthetic pairs it follows the paper's tables. The same per overlap bin
+  (:data:`OVERLAP_BINS`) when the pairs carry ``meta["overlap"]``;
+* the confidence flag: every record carries ``confident`` and ``fitness`` of
+  :func:`linereg.registration.api.quality`, scored against *correct* = RRE at most 2 deg and RTE
+  at most 2 % of the target's axis-aligned bounding-box diagonal (TP/FP/FN/TN, precision,
+  recall) per method, over all records and per pair source (``meta["source"]``, else the
+  benchmark's name). :func:`pooled_records` and ``scripts/bench_confidence.py`` pool several
+  ``results.json`` into one such table.
 
 The pairs come from :data:`linereg.datasets.benchmark_pairs.PAIR_SOURCES` (``benchmark.name``).
 
@@ -38,7 +53,9 @@ from linereg.metrics import (
     alpha_recall,
     paper_table,
     registration_errors,
+    rotation_error_deg,
 )
+from linereg.registration.api import quality
 from linereg.registration.methods import METHODS, Method
 from linereg.registry import UnknownNameError
 from linereg.structures import PairSample
@@ -53,12 +70,44 @@ MANDATORY_HINTS = {
 ABSOLUTE_ALPHA_RANGE = (1e-4, 1.0)
 RELATIVE_ALPHA_RANGE = (3e-5, 0.3)
 ALPHA_STEPS = 201
+RECALL_THRESHOLDS = ((15.0, 0.3), (5.0, 0.1))
+"""Registration recall thresholds ``(RRE degrees, RTE pair units)``: 3DMatch's, then a tighter one."""
+OVERLAP_BINS = (
+    ("< 0.2", -np.inf, 0.2, False),
+    ("[0.2, 0.3)", 0.2, 0.3, False),
+    ("[0.3, 0.5)", 0.3, 0.5, False),
+    ("[0.5, 0.8]", 0.5, 0.8, True),
+    ("> 0.8", 0.8, np.inf, False),
+)
+"""``(label, low, high, high included)`` overlap bins of the per-bin recall table."""
+CORRECT_ROTATION_DEG = 2.0
+CORRECT_TRANSLATION_FRACTION = 0.02
+"""A registration is *correct* (scoring the confidence flag) with RRE <= 2 deg and RTE <= 2 % of
+the target's axis-aligned bounding-box diagonal."""
+METRIC_SOURCES = ("3dmatch", "fragments")
+IDENTITY = "identity (no motion)"
 
 
 def object_diameter(points: np.ndarray) -> float:
     """Twice the largest distance of a point of ``points (N, 3)`` from their centroid."""
     points = np.asarray(points, dtype=np.float64)
     return 2.0 * float(np.linalg.norm(points - points.mean(axis=0), axis=1).max())
+
+
+def bounding_box_diagonal(points: np.ndarray) -> float:
+    """Length of the diagonal of the axis-aligned bounding box of ``points (N, 3)``."""
+    points = np.asarray(points, dtype=np.float64)
+    return float(np.linalg.norm(points.max(axis=0) - points.min(axis=0)))
+
+
+def _confidence(pair: PairSample, transform: Any) -> dict[str, Any]:
+    """``confident``, ``fitness`` (:func:`linereg.registration.api.quality`) and ``bbox_diagonal`` of a result."""
+    found = quality(pair.src_xyz, pair.tgt_xyz, np.asarray(transform, dtype=np.float64))
+    return {
+        "confident": bool(found["confident"]),
+        "fitness": float(found["fitness"]),
+        "bbox_diagonal": bounding_box_diagonal(pair.tgt_xyz),
+    }
 
 
 def _jsonable(value: Any) -> Any:
@@ -98,7 +147,9 @@ def run_benchmark(
     Returns:
         One record per (pair, method), pairs outer: ``pair`` (position in ``pairs``),
         ``method``, ``seconds``, every key of :data:`linereg.metrics.ERROR_KEYS` (float),
-        ``diameter`` (:func:`object_diameter` of the target), ``transform`` and
+        ``diameter`` (:func:`object_diameter` of the target), ``bbox_diagonal``
+        (:func:`bounding_box_diagonal` of the target), ``confident`` and ``fitness``
+        (:func:`linereg.registration.api.quality` of the result), ``transform`` and
         ``gt_transform`` (4x4 lists), ``meta`` (the pair's) and ``info`` (the method's).
 
     Raises:
@@ -119,7 +170,10 @@ def run_benchmark(
     for index, pair in enumerate(pairs):
         for name, method in methods.items():
             if (index, name) in done:
-                records.append(done[(index, name)])
+                record = done[(index, name)]
+                if "confident" not in record:
+                    record.update(_confidence(pair, record["transform"]))
+                records.append(record)
                 bar.update()
                 continue
             bar.set_postfix(method=name, pair=index)
@@ -139,6 +193,7 @@ def run_benchmark(
                     "seconds": float(result.seconds),
                     **{key: float(errors[key][0]) for key in ERROR_KEYS},
                     "diameter": object_diameter(pair.tgt_xyz),
+                    **_confidence(pair, result.transform),
                     "transform": np.asarray(result.transform, dtype=np.float64).tolist(),
                     "gt_transform": np.asarray(pair.gt_transform, dtype=np.float64).tolist(),
                     "meta": _jsonable(pair.meta),
@@ -161,18 +216,207 @@ def _by_method(records: Sequence[Mapping[str, Any]]) -> dict[str, list[Mapping[s
     return grouped
 
 
+def recall_key(max_rotation_deg: float, max_translation: float) -> str:
+    """Summary key of a registration recall, e.g. ``recall_15deg_0.3``."""
+    return f"recall_{max_rotation_deg:g}deg_{max_translation:g}"
+
+
 def summarize_records(records: Sequence[Mapping[str, Any]]) -> dict[str, dict[str, float]]:
-    """Per method: mean and median of every error and of the time, pair count, success rates.
+    """Per method: mean and median of every error and of the time, pair count, success rates, recalls.
 
     Returns:
         ``{method: {"<key>_mean", "<key>_median" for the ERROR_KEYS and "seconds", "pairs",
-        "success_1deg", "success_5deg"}}`` (success = fraction of pairs with ``Err_R`` below).
+        "success_1deg", "success_5deg", recall_key(...) for the RECALL_THRESHOLDS}}`` (success =
+        fraction of pairs with ``Err_R`` below; recall = fraction with ``Err_R`` and ``Err_t``
+        (l2) at most the thresholds).
     """
     summary = {}
     for method, rows in _by_method(records).items():
         columns = {key: np.array([row[key] for row in rows], dtype=np.float64) for key in (*ERROR_KEYS, "seconds")}
         summary[method] = aggregate_errors(columns, success_deg=SUCCESS_THRESHOLDS_DEG)
+        for max_deg, max_translation in RECALL_THRESHOLDS:
+            hits = (columns["err_r_deg"] <= max_deg) & (columns["err_t_l2"] <= max_translation)
+            summary[method][recall_key(max_deg, max_translation)] = float(np.mean(hits))
     return summary
+
+
+def identity_records(records: Sequence[Mapping[str, Any]]) -> list[dict[str, Any]]:
+    """Records of not moving the source (identity transform, no time) on the pairs of ``records``.
+
+    Returns:
+        One record per distinct ``pair`` with method :data:`IDENTITY`, its errors (``Err_R`` the
+        ground-truth rotation angle, ``Err_t`` the ground-truth translation length; NaN
+        pointwise errors, which need the points), ``seconds`` 0 and the pair's ``meta``.
+    """
+    first = {}
+    for record in records:
+        first.setdefault(record["pair"], record)
+    identities = []
+    for pair, record in first.items():
+        gt = np.asarray(record["gt_transform"], dtype=np.float64)
+        translation = gt[:3, 3]
+        rotation = float(rotation_error_deg(torch.eye(3, dtype=torch.float64), torch.from_numpy(gt[:3, :3])))
+        identities.append(
+            {
+                "pair": pair,
+                "method": IDENTITY,
+                "seconds": 0.0,
+                "err_r_deg": rotation,
+                "err_t_l1": float(np.abs(translation).sum()),
+                "err_t_l2": float(np.linalg.norm(translation)),
+                "err_pw_l1": float("nan"),
+                "err_pw_l2": float("nan"),
+                "meta": record.get("meta", {}),
+            }
+        )
+    return identities
+
+
+def overlap_bin(overlap: float) -> str:
+    """Label of the :data:`OVERLAP_BINS` bin holding ``overlap``."""
+    for label, low, high, closed in OVERLAP_BINS:
+        if low <= overlap < high or (closed and overlap == high):
+            return label
+    raise ValueError(f"overlap {overlap} is in no bin")
+
+
+def recall_table(summary: Mapping[str, Mapping[str, float]], units: str) -> list[str]:
+    """Markdown lines: registration recalls, mean and median RRE / RTE and mean time per method.
+
+    Args:
+        summary: :func:`summarize_records` output.
+        units: the pairs' length unit, named in the header (e.g. ``"m"``).
+    """
+    recalls = " | ".join(f"recall (RRE <= {deg:g} deg, RTE <= {t:g} {units})" for deg, t in RECALL_THRESHOLDS)
+    lines = [
+        f"| Method | pairs | {recalls} | RRE mean (deg) | RRE median (deg) | RTE mean ({units}) "
+        f"| RTE median ({units}) | time mean (s) |",
+        "|---|---|" + "---|" * (len(RECALL_THRESHOLDS) + 5),
+    ]
+    for method, stats in summary.items():
+        values = " | ".join(f"{stats[recall_key(*thresholds)]:.3f}" for thresholds in RECALL_THRESHOLDS)
+        lines.append(
+            f"| {method} | {stats['pairs']} | {values} | {stats['err_r_deg_mean']:.2f} "
+            f"| {stats['err_r_deg_median']:.2f} | {stats['err_t_l2_mean']:.3f} | {stats['err_t_l2_median']:.3f} "
+            f"| {stats['seconds_mean']:.2f} |"
+        )
+    return lines
+
+
+def recall_sections(records: Sequence[Mapping[str, Any]], units: str) -> list[str]:
+    """Markdown lines: :func:`recall_table` with the identity baseline, then the same per overlap bin.
+
+    The per-bin tables cover the non-empty :data:`OVERLAP_BINS` and appear only when every
+    record's ``meta`` has an ``overlap``.
+    """
+    deg, translation = RECALL_THRESHOLDS[0]
+    baseline = summarize_records(identity_records(records))
+    lines = [
+        f"## Registration recall (RRE <= {deg:g} deg and RTE <= {translation:g} {units}, 3DMatch's definition)",
+        "",
+        *recall_table({**summarize_records(records), **baseline}, units),
+    ]
+    overlaps = [record.get("meta", {}).get("overlap") for record in records]
+    if any(overlap is None for overlap in overlaps):
+        return lines
+    by_bin: dict[str, list[Mapping[str, Any]]] = {label: [] for label, *_ in OVERLAP_BINS}
+    for record, overlap in zip(records, overlaps, strict=True):
+        by_bin[overlap_bin(overlap)].append(record)
+    for label, members in by_bin.items():
+        if members:
+            pairs = len({record["pair"] for record in members})
+            lines += ["", f"### Overlap {label} ({pairs} pairs)", ""]
+            lines += recall_table({**summarize_records(members), **summarize_records(identity_records(members))}, units)
+    return lines
+
+
+def is_correct(record: Mapping[str, Any]) -> bool:
+    """RRE <= 2 deg and RTE <= 2 % of the target's bounding-box diagonal (scores the confidence flag)."""
+    return bool(
+        record["err_r_deg"] <= CORRECT_ROTATION_DEG
+        and record["err_t_l2"] <= CORRECT_TRANSLATION_FRACTION * record["bbox_diagonal"]
+    )
+
+
+def confusion(records: Sequence[Mapping[str, Any]]) -> dict[str, float]:
+    """The ``confident`` flags of ``records`` scored against :func:`is_correct`.
+
+    Returns:
+        ``tp`` (confident and correct), ``fp`` (confident, wrong), ``fn`` (not confident,
+        correct), ``tn`` (neither), ``precision`` = tp / (tp + fp) and ``recall`` =
+        tp / (tp + fn) (NaN when the denominator is 0).
+    """
+    counts = {"tp": 0, "fp": 0, "fn": 0, "tn": 0}
+    for record in records:
+        confident, correct = bool(record["confident"]), is_correct(record)
+        counts[("t" if confident == correct else "f") + ("p" if confident else "n")] += 1
+    tp, fp, fn = counts["tp"], counts["fp"], counts["fn"]
+    return {
+        **counts,
+        "precision": tp / (tp + fp) if tp + fp else float("nan"),
+        "recall": tp / (tp + fn) if tp + fn else float("nan"),
+    }
+
+
+def record_source(record: Mapping[str, Any], default: str) -> str:
+    """The pair source of a record: its ``meta["source"]`` when that is a name, else ``default``."""
+    source = record.get("meta", {}).get("source")
+    return source if isinstance(source, str) else default
+
+
+def confidence_lines(records: Sequence[Mapping[str, Any]], default_source: str) -> list[str]:
+    """Markdown lines: :func:`confusion` per method and over all records, then per source if several.
+
+    Args:
+        records: records with ``confident``, ``bbox_diagonal`` and the errors.
+        default_source: source of records whose ``meta`` names none (:func:`record_source`).
+
+    Raises:
+        ValueError: a record has no ``confident`` flag.
+    """
+    unflagged = [record["pair"] for record in records if "confident" not in record]
+    if unflagged:
+        raise ValueError(f"records of pairs {unflagged[:5]} have no 'confident' flag; run the benchmark again")
+    header = ["| Rows | records | TP | FP | FN | TN | precision | recall |", "|---|---|---|---|---|---|---|---|"]
+
+    def table(groups: Mapping[str, Sequence[Mapping[str, Any]]]) -> list[str]:
+        rows = []
+        for name, members in groups.items():
+            c = confusion(members)
+            rows.append(
+                f"| {name} | {len(members)} | {c['tp']} | {c['fp']} | {c['fn']} | {c['tn']} "
+                f"| {c['precision']:.3f} | {c['recall']:.3f} |"
+            )
+        return header + rows
+
+    by_source: dict[str, list[Mapping[str, Any]]] = {}
+    for record in records:
+        by_source.setdefault(record_source(record, default_source), []).append(record)
+    lines = [
+        f"## Confidence flag (`quality()['confident']`) against correct = RRE <= {CORRECT_ROTATION_DEG:g} deg "
+        f"and RTE <= {100 * CORRECT_TRANSLATION_FRACTION:g} % of the target's bounding-box diagonal",
+        "",
+        f"Sources: {', '.join(f'{name} ({len(members)} records)' for name, members in by_source.items())}.",
+        "",
+        *table({**_by_method(records), "all": records}),
+    ]
+    if len(by_source) > 1:
+        for name, members in by_source.items():
+            lines += ["", f"### Source `{name}`", "", *table({**_by_method(members), "all": members})]
+    return lines
+
+
+def pooled_records(paths: Sequence[str | Path]) -> list[dict[str, Any]]:
+    """The records of several ``results.json``, each ``meta["source"]`` set (:func:`record_source`
+    with the file's benchmark name) and ``pair`` made unique across the files."""
+    pooled = []
+    for path in paths:
+        content = json.loads(Path(path).read_text())
+        default = str(content.get("settings", {}).get("benchmark", {}).get("name", Path(path).parent.name))
+        for record in content["records"]:
+            meta = {**record.get("meta", {}), "source": record_source(record, default)}
+            pooled.append({**record, "meta": meta, "pair": f"{path}:{record['pair']}"})
+    return pooled
 
 
 def recall_errors(records: Sequence[Mapping[str, Any]], *, relative_alpha: bool = False) -> dict[str, np.ndarray]:
@@ -294,6 +538,32 @@ def _plot(path: Path, alphas: np.ndarray, curves: Mapping[str, Sequence[float]],
     plt.close(figure)
 
 
+def pair_units(source: Mapping[str, Any] | None) -> str | None:
+    """``"m"`` for a real source kept in metres (:data:`METRIC_SOURCES` without ``half_extent``), else ``None``."""
+    source = source or {}
+    return "m" if source.get("name") in METRIC_SOURCES and source.get("half_extent") is None else None
+
+
+def header_lines(records: Sequence[Mapping[str, Any]], name: str, units: str | None) -> list[str]:
+    """Markdown lines naming the benchmark, its pairs per source, the units and the identity baseline."""
+    sources: dict[str, set] = {}
+    for record in records:
+        sources.setdefault(record_source(record, name), set()).add(record["pair"])
+    counted = ", ".join(f"{len(pairs)} from `{source}`" for source, pairs in sources.items())
+    unit_text = (
+        "errors and thresholds in metres"
+        if units == "m"
+        else "errors and thresholds in the pairs' own units (normalised; the metric thresholds do not apply)"
+    )
+    pairs, methods = len({record["pair"] for record in records}), len(_by_method(records))
+    return [
+        f"# Benchmark `{name}`: {pairs} pairs x {methods} methods",
+        "",
+        f"Pairs: {counted}; {unit_text}. `{IDENTITY}` is the error of leaving the source where it is.",
+        "",
+    ]
+
+
 def write_results(
     records: Sequence[Mapping[str, Any]],
     out_dir: str | Path,
@@ -317,7 +587,10 @@ def write_results(
         ``{"json": ..., "table": ..., "plot": ...}`` paths. ``results.json`` holds
         ``settings``, ``summary`` (:func:`summarize_records`), ``alpha_recall`` (``alphas``,
         ``relative``, ``recall`` per method, ``below_first``: :func:`recall_shortfalls`) and
-        ``records``; ``table.md`` ends with :func:`recall_lines` when there are several methods.
+        ``records``. ``table.md``: :func:`header_lines`, then for metric pairs
+        (:func:`pair_units` of ``settings["benchmark"]``) :func:`recall_sections` and
+        :func:`confidence_lines` before the paper's tables (:func:`markdown_tables`), otherwise
+        after them; it ends with :func:`recall_lines` when there are several methods.
     """
     if not records:
         raise ValueError("no records to write")
@@ -342,7 +615,15 @@ def write_results(
         "records": [_jsonable(record) for record in records],
     }
     paths["json"].write_text(json.dumps(content, indent=1, allow_nan=True))
-    table = markdown_tables(summary)
+    name = str((settings or {}).get("benchmark", {}).get("name", "pairs"))
+    units = pair_units((settings or {}).get("benchmark"))
+    sections = [
+        "\n".join(recall_sections(records, units or "pair units")) + "\n",
+        "\n".join(confidence_lines(records, name)) + "\n",
+    ]
+    paper = markdown_tables(summary)
+    parts = [*sections, paper] if units else [paper, *sections]
+    table = "\n".join([*header_lines(records, name, units), *parts])
     if len(errors) > 1:
         table += "\n" + "\n".join(recall_lines(errors)) + "\n"
     paths["table"].write_text(table)

@@ -14,7 +14,7 @@ config root so that ``loss=...`` names a loss, not the training configs' ``loss`
     python -m train.register source=a.ply target=b.ply method=outputs/train/runs/<run> refine=true  # a network
 
 It prints the 4x4 source-to-target transform with Open3D's ``fitness`` and ``inlier_rmse`` and a
-``converged`` flag, and writes ``transform.txt``, ``registered.ply`` (the whole source,
+``confident`` flag, and writes ``transform.txt``, ``registered.ply`` (the whole source,
 transformed) and ``result.json`` (those values, time and, with ``gt``, the paper's errors) in
 the run folder; ``registration.png`` with ``picture=true``. A failed run leaves no folder.
 """
@@ -22,7 +22,7 @@ the run folder; ``registration.png`` with ``picture=true``. A failed run leaves 
 from __future__ import annotations
 
 import json
-import logging
+import sys
 import warnings
 from importlib.util import find_spec
 from pathlib import Path
@@ -34,8 +34,6 @@ from omegaconf import DictConfig, ListConfig, OmegaConf
 
 from linereg.train import CONFIG_DIR
 from linereg.train.cli import reported, require, run_app
-
-log = logging.getLogger(__name__)
 
 COMMAND = "linereg-register"
 
@@ -50,27 +48,21 @@ class RegisterError(ValueError):
 def parse_init(value: Any) -> np.ndarray | None:
     """The ``init=`` argument as a ``(4, 4)`` rigid transform (``None`` when not given).
 
-    Accepts a file (:func:`linereg.io.read_transform`), 16 (4x4) or 12 (3x4) numbers as a list
-    or a string separated by spaces or commas, or ``identity``.
+    Accepts a file (:func:`read_rigid`), 16 (4x4) or 12 (3x4) numbers as a list or a string
+    separated by spaces or commas, or ``identity``. A nearly rigid matrix is orthonormalised with a
+    warning (:func:`linereg.checks.as_rigid_transform`).
 
     Raises:
         RegisterError: not a file, not 12/16 numbers, or not rigid; the message names ``init``.
     """
-    from linereg.checks import check_transform
-    from linereg.io import read_transform
+    from linereg.checks import as_rigid_transform
 
     if value is None:
         return None
     if isinstance(value, str) and value.strip().lower() == "identity":
         return np.eye(4)
     if isinstance(value, str) and Path(value).expanduser().exists():
-        path = Path(value).expanduser()
-        if path.is_dir():
-            raise RegisterError(f"init={value}: is a folder, expected a file with a 4x4 transform")
-        try:
-            return read_transform(path)
-        except ValueError as error:
-            raise RegisterError(f"init={value}: {error}") from error
+        return read_rigid(value, "init")
     numbers = list(value) if isinstance(value, list | tuple | ListConfig) else str(value).replace(",", " ").split()
     try:
         values = np.array([float(number) for number in numbers], dtype=np.float64)
@@ -82,12 +74,31 @@ def parse_init(value: Any) -> np.ndarray | None:
         values = np.concatenate([values, [0.0, 0.0, 0.0, 1.0]])
     if values.size != 16:
         raise RegisterError(f"init={value!r}: expected 16 (4x4) or 12 (3x4) numbers, got {values.size}")
-    transform = values.reshape(4, 4)
     try:
-        check_transform(transform, "init", rigid_atol=1e-4)
+        return as_rigid_transform(values.reshape(4, 4), "init")
     except ValueError as error:
         raise RegisterError(f"init={value!r}: {error}") from error
-    return transform
+
+
+def read_rigid(path: Any, argument: str) -> np.ndarray:
+    """The transform file of ``argument`` (``gt``, ``init``: ``.txt``, ``.npy`` or ``.npz``) as an
+    exactly rigid ``(4, 4)``; a nearly rigid one is orthonormalised with a warning naming ``argument``.
+
+    Raises:
+        RegisterError: missing, a folder, unreadable or not rigid; the message names ``argument``.
+    """
+    from linereg.checks import as_rigid_transform
+    from linereg.io import read_transform
+
+    try:
+        return as_rigid_transform(read_transform(Path(str(path)).expanduser()), argument)
+    except (OSError, ValueError) as error:
+        raise RegisterError(f"{argument}={path}: {error}") from error
+
+
+def warn(note: str) -> None:
+    """Write ``linereg-register: warning: <note>`` (one line) to stderr."""
+    print(f"{COMMAND}: warning: {' '.join(note.split())}", file=sys.stderr)
 
 
 def read_cloud(path: Any, argument: str):
@@ -151,23 +162,19 @@ def register_files(cfg: DictConfig, out_dir: Path) -> tuple[Any, dict[str, Any]]
     Raises:
         RegisterError: a bad argument or file, naming it.
     """
-    from linereg.io import read_transform
-
     src = read_cloud(cfg.source, "source")
     tgt = read_cloud(cfg.target, "target")
-    gt = None
-    if cfg.gt:
-        try:
-            gt = read_transform(cfg.gt)
-        except (FileNotFoundError, ValueError) as error:
-            raise RegisterError(f"gt={cfg.gt}: {error}") from error
-    init = parse_init(cfg.init)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        gt = read_rigid(cfg.gt, "gt") if cfg.gt else None
+        init = parse_init(cfg.init)
+    input_notes = _notes(caught)
     if cfg.picture and find_spec("matplotlib") is None:
         raise RegisterError(
             "picture=true needs matplotlib, which comes with the [train] extra: pip install 'linereg[train]'"
         )
     result, notes = _register(cfg, src, tgt, init, gt)
-    report = _report(cfg, src, tgt, result, notes, gt)
+    report = _report(cfg, src, tgt, result, input_notes + notes, gt)
     _write_outputs(cfg, out_dir, src, tgt, result.transformation, report)
     return result, report
 
@@ -194,10 +201,15 @@ def _register(cfg: DictConfig, src, tgt, init: np.ndarray | None, gt: np.ndarray
             )
         except (KeyError, TypeError, ValueError) as error:
             raise RegisterError(str(error)) from error
+    return result, _notes(caught)
+
+
+def _notes(caught: list[warnings.WarningMessage]) -> list[str]:
+    """The messages of the ``UserWarning``s among ``caught``, each written with :func:`warn`."""
     notes = [str(w.message) for w in caught if issubclass(w.category, UserWarning)]
     for note in notes:
-        log.warning(note)
-    return result, notes
+        warn(note)
+    return notes
 
 
 def _rotation_monitor(gt: np.ndarray):
@@ -219,7 +231,7 @@ def _report(cfg: DictConfig, src, tgt, result, notes: list[str], gt: np.ndarray 
     """The contents of ``result.json``: clouds, method, time, transform, quality and (with ``gt``) errors."""
     transform = result.transformation
     info = dict(result.info)
-    quality = {key: info.pop(key) for key in ("converged", "confidence", "init") if key in info}
+    quality = {key: info.pop(key) for key in ("fitness_threshold", "sampling_distance", "init") if key in info}
     report: dict[str, Any] = {
         "source": str(cfg.source),
         "target": str(cfg.target),
@@ -230,6 +242,7 @@ def _report(cfg: DictConfig, src, tgt, result, notes: list[str], gt: np.ndarray 
         "transform": transform.tolist(),
         "fitness": result.fitness,
         "inlier_rmse": result.inlier_rmse,
+        "confident": result.confident,
         **quality,
         "info": info,
         "warnings": notes,
@@ -243,6 +256,7 @@ def _report(cfg: DictConfig, src, tgt, result, notes: list[str], gt: np.ndarray 
             torch.from_numpy(transform)[None], torch.from_numpy(gt)[None], torch.from_numpy(src.xyz).double()[None]
         )
         report["metrics"] = {key: float(value[0]) for key, value in errors.items()}
+        report["metrics"]["translation_error"] = float(np.linalg.norm(transform[:3, 3] - gt[:3, 3]))
     return report
 
 
@@ -284,12 +298,12 @@ def _register_app(cfg: DictConfig) -> None:
     np.set_printoptions(precision=6, suppress=True)
     print(f"source -> target transform ({result.seconds:.2f} s):")
     print(result.transformation)
-    flag = "converged" if report.get("converged", True) else "NOT converged (doubtful pose)"
+    flag = "confident" if result.confident else "NOT confident: the pose may be wrong"
     print(f"fitness {result.fitness:.3f} | inlier_rmse {result.inlier_rmse:.4g} | {flag}")
     if "metrics" in report:
         m = report["metrics"]
         print(
-            f"Err_R {m['err_r_deg']:.3f} deg | Err_t l1 {m['err_t_l1']:.4g} l2 {m['err_t_l2']:.4g} "
+            f"Err_R {m['err_r_deg']:.3f} deg | translation error {m['translation_error']:.4g} "
             f"| Err_pw l1 {m['err_pw_l1']:.4g} l2 {m['err_pw_l2']:.4g}"
         )
     print(f"outputs in {out_dir}")

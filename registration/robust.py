@@ -35,6 +35,8 @@ The settings are :class:`~linereg.registration.robust_options.RobustOptions`, on
 
 from __future__ import annotations
 
+import sys
+import time
 import warnings
 from collections.abc import Mapping
 from dataclasses import dataclass
@@ -65,6 +67,9 @@ from linereg.registration.search import pose_search
 from linereg.registration.welsch import fine_scales, fixed_scale_cost, polish_scales, welsch_irls
 
 __all__ = ["RobustOptions", "RobustRegistration", "degeneracy", "doubt"]
+
+PROGRESS_AFTER = 1.0
+"""Seconds into a registration after which ``progress=True`` prints each stage as it starts."""
 
 
 def degeneracy(points: np.ndarray, name: str) -> str | None:
@@ -157,6 +162,8 @@ class RobustRegistration:
         num_points: FPS size of each cloud for the polish and the selection.
         device: ``"cpu"`` only: the stages are numpy and scipy.
         center: register centred clouds.
+        progress: print a line on stderr as each later stage starts, once the registration has run
+            for :data:`PROGRESS_AFTER` seconds.
     """
 
     def __init__(
@@ -165,6 +172,7 @@ class RobustRegistration:
         num_points: int | None = 2048,
         device: str = "cpu",
         center: bool = True,
+        progress: bool = False,
     ) -> None:
         if str(device) != "cpu":
             raise ValueError(
@@ -176,6 +184,14 @@ class RobustRegistration:
         self.options = robust_options(options)
         self.num_points = num_points
         self.center = center
+        self.progress = progress
+        self._started = 0.0
+
+    def _stage(self, text: str) -> None:
+        """A progress line for a stage that starts :data:`PROGRESS_AFTER` seconds or more into the run."""
+        elapsed = time.perf_counter() - self._started
+        if self.progress and elapsed >= PROGRESS_AFTER:
+            print(f"register: {elapsed:4.1f} s  {text}", file=sys.stderr, flush=True)
 
     def __call__(self, src, tgt, src_normals=None, tgt_normals=None) -> MethodResult:
         """Register ``src (N, 3)`` onto ``tgt (M, 3)``."""
@@ -258,6 +274,7 @@ class RobustRegistration:
         rounds = 1
         while doubtful and rounds < select.rounds:
             rounds += 1
+            self._stage(f"doubtful: round {rounds} ({'Adam on CD-W' if rounds == 2 else 'pose search'})")
             more, more_costs, more_starts = self._round(rounds, pair)
             poses = tuple(np.concatenate([a, b]) for a, b in zip(poses, more, strict=True))
             costs, starts = np.concatenate([costs, more_costs]), starts + more_starts
@@ -286,13 +303,16 @@ class RobustRegistration:
         """After a doubtful first round: the global candidates join and the dense judgement chooses
         (:meth:`_judge`); rounds 2 and 3 of the local stages add theirs while the choice stays doubtful."""
         select = self.options.select
+        self._stage("first round doubtful: FPFH + RANSAC and FGR candidates")
         dense = dense_target(pair.tgt_whole, self.options.global_stage.dense_points)
         found = self._global_round(pair, dense)
+        self._stage(f"dense judgement of {len(poses[0]) + len(found[0])} candidates")
         poses, costs = self._judge(_joined(poses, found), pair, dense)
         rounds = 1
         doubtful, margin = _dense_doubt(select, poses, costs, pair.src, dense)
         while doubtful and rounds < select.rounds:
             rounds += 1
+            self._stage(f"still doubtful: round {rounds} ({'Adam on CD-W' if rounds == 2 else 'pose search'})")
             more, _, more_starts = self._round(rounds, pair)
             poses, costs = self._judge(_joined(poses, more), pair, dense)
             starts += more_starts
@@ -338,11 +358,16 @@ class RobustRegistration:
         return chosen, {"fine": fine, "coincident": coincident, "plane": plane}
 
     def _dense_finish(self, chosen: Poses, pair: _Pair, dense: DenseTarget) -> tuple[Poses, dict[str, Any]]:
-        """Plane-to-plane steps of the chosen pose against the dense target (the scans of a
-        partial overlap are independent samplings: a point-to-point fit keeps their offset)."""
+        """Plane-to-plane steps of the chosen pose against the dense target when it is denser than
+        the solver's subset (a scan: local planes from 10 of its points are planes) and the clouds
+        are independent samplings of the surface (as in :meth:`_finish`: a point-to-point fit
+        keeps their sampling offset; clouds cut from one sampling coincide where they overlap)."""
         plane = self.options.plane
-        if plane.steps == 0:
-            return chosen, {"fine": False, "coincident": None, "plane": False}
+        distances, _ = dense.index.query(apply(chosen, pair.src)[0])
+        coincident = float((distances <= plane.coincident_distance * dense.spacing).mean())
+        sparse = len(dense.points) <= len(pair.tgt)
+        if plane.steps == 0 or sparse or coincident >= plane.coincident_share:
+            return chosen, {"fine": False, "coincident": coincident, "plane": False}
         k, epsilon = plane.neighbours, plane.epsilon
         chosen = plane_to_plane_irls(
             chosen,
@@ -353,9 +378,10 @@ class RobustRegistration:
             plane.nu * dense.spacing * self.options.global_stage.dense_plane,
             plane.steps,
         )
-        return chosen, {"fine": False, "coincident": None, "plane": True}
+        return chosen, {"fine": False, "coincident": coincident, "plane": True}
 
     def _solve(self, src, tgt, src_normals, tgt_normals) -> MethodResult:
+        self._started = time.perf_counter()
         pair, radius = self._pair(src, tgt)
         poses, costs, choice = self._rounds(pair)
         best = choice["best"]

@@ -266,7 +266,9 @@ class GlobalOptions(_Checked):
         dense_start, dense_steps, dense_end, dense_settle: the dense polish: Welsch scales falling
             from ``dense_start`` to ``dense_end`` dense spacings
             in ``dense_steps`` steps, then up to ``dense_settle`` more.
-        select_spacings: scale of the selection cost, in dense spacings.
+        select_spacings: scale of the selection cost, in dense spacings (the dense polish's last
+            scale: every candidate is a local minimum of that cost; a coarser scale rewards a pose
+            that brings more of a partly overlapping view near the target, such as a flipped airplane).
         dense_plane: the plane-to-plane steps of the chosen pose run with ``plane_nu`` times this
             many dense spacings.
     """
@@ -280,7 +282,7 @@ class GlobalOptions(_Checked):
     dense_steps: int = 10
     dense_end: float = 0.7
     dense_settle: int = 20
-    select_spacings: float = 2.0
+    select_spacings: float = 0.7
     dense_plane: float = 2.0
 
     def __post_init__(self) -> None:

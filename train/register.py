@@ -137,7 +137,7 @@ def method_config(cfg: DictConfig) -> dict[str, Any] | str:
         if cfg.loss is not None:
             raise RegisterError(f"loss={cfg.loss} needs solver=adam (the robust solver has its own losses)")
         options = OmegaConf.to_container(cfg.robust) if cfg.robust else {}
-        config = {"name": "robust", "options": options, "num_points": cfg.num_points}
+        config = {"name": "robust", "options": options, "num_points": cfg.num_points, "progress": cfg.progress}
         if cfg.device not in (None, "cpu"):
             config["device"] = cfg.device  # the solver refuses it, saying why
         return config

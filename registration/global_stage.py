@@ -8,8 +8,8 @@ the whole target instead of the solver's subset. On a room scanned at 1 cm, a su
 points is 6 cm apart; a wrong pose that slides the overlap along walls and floors then fits the
 subset as well as the right one. Against the dense target each candidate gets a Welsch IRLS polish
 down to ``dense_end`` dense spacings (:func:`dense_polish`) and the lowest fixed-scale Welsch
-cost at ``select_spacings`` dense spacings (:func:`dense_costs`) chooses: one rule for every
-candidate, whatever produced it.
+cost at that last scale (:func:`dense_costs`) chooses: one rule for every candidate, whatever
+produced it.
 """
 
 from __future__ import annotations
@@ -37,31 +37,37 @@ class DenseTarget:
         points: ``(M, 3)`` FPS points of the whole target.
         index: their nearest-neighbour index.
         spacing: their median nearest-neighbour distance.
+        scale: the last Welsch scale of the dense polish and the scale of the selection cost.
     """
 
     points: np.ndarray
     index: NearestNeighbors
     spacing: float
+    scale: float
 
 
-def dense_target(tgt: np.ndarray, count: int) -> DenseTarget:
-    """:class:`DenseTarget` of ``count`` FPS points of ``tgt (M, 3)`` (all of them when ``M <= count``)."""
-    points = fps(tgt, count)
+def dense_target(tgt: np.ndarray, options: GlobalOptions, finest: float) -> DenseTarget:
+    """:class:`DenseTarget` of ``dense_points`` FPS points of ``tgt (M, 3)`` (all of them when fewer);
+    its scale is ``dense_end`` dense spacings, or ``finest`` (the polish's last scale) if smaller:
+    a target no denser than the solver's subset keeps the precision of the polish."""
+    points = fps(tgt, options.dense_points)
     index = NearestNeighbors(points)
-    return DenseTarget(points, index, point_spacing(points, index))
+    spacing = point_spacing(points, index)
+    return DenseTarget(points, index, spacing, min(options.dense_end * spacing, finest))
 
 
 def dense_polish(poses: Poses, src: np.ndarray, dense: DenseTarget, options: GlobalOptions) -> Poses:
     """Welsch IRLS of every pose of ``poses`` (``K``) with source points ``src (N, 3)`` against the
-    dense target: ``dense_steps`` scales falling geometrically from ``dense_start`` to ``dense_end``
-    dense spacings, then up to ``dense_settle`` steps at the last one."""
-    scales = np.geomspace(options.dense_start, options.dense_end, options.dense_steps) * dense.spacing
+    dense target: ``dense_steps`` scales falling geometrically from ``dense_start`` dense spacings
+    to the target's ``scale``, then up to ``dense_settle`` steps at the last one."""
+    scales = np.geomspace(options.dense_start * dense.spacing, dense.scale, options.dense_steps)
     return welsch_irls(poses, src, dense.index, scales, options.dense_settle)
 
 
-def dense_costs(poses: Poses, src: np.ndarray, dense: DenseTarget, options: GlobalOptions) -> np.ndarray:
-    """``(K,)`` fixed-scale Welsch costs at ``select_spacings`` dense spacings: the selection rule."""
-    return fixed_scale_cost(poses, src, dense.index, options.select_spacings * dense.spacing)
+def dense_costs(poses: Poses, src: np.ndarray, dense: DenseTarget) -> np.ndarray:
+    """``(K,)`` fixed-scale Welsch costs at the dense polish's last scale: the selection rule
+    (every polished candidate is a local minimum of it)."""
+    return fixed_scale_cost(poses, src, dense.index, dense.scale)
 
 
 def dense_confident(poses: Poses, best: int, src: np.ndarray, dense: DenseTarget) -> bool:

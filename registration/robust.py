@@ -301,36 +301,53 @@ class RobustRegistration:
 
     def _judged_rounds(self, pair: _Pair, poses: Poses, starts: int) -> tuple[Poses, np.ndarray, dict[str, Any]]:
         """After a doubtful first round: the global candidates join and the dense judgement chooses
-        (:meth:`_judge`); rounds 2 and 3 of the local stages add theirs while the choice stays doubtful."""
+        (:meth:`_judge`); rounds 2 and 3 of the local stages add theirs while the choice stays
+        doubtful (:meth:`_still_doubtful`)."""
         select = self.options.select
         self._stage("first round doubtful: FPFH + RANSAC and FGR candidates")
-        dense = dense_target(pair.tgt_whole, self.options.global_stage.dense_points)
+        dense = dense_target(
+            pair.tgt_whole, self.options.global_stage, float(pair.nus[-1]) if len(pair.nus) else np.inf
+        )
         found = self._global_round(pair, dense)
         self._stage(f"dense judgement of {len(poses[0]) + len(found[0])} candidates")
         poses, costs = self._judge(_joined(poses, found), pair, dense)
         rounds = 1
-        doubtful, margin = _dense_doubt(select, poses, costs, pair.src, dense)
+        doubtful, margin = self._still_doubtful(poses, costs, pair, dense)
         while doubtful and rounds < select.rounds:
             rounds += 1
             self._stage(f"still doubtful: round {rounds} ({'Adam on CD-W' if rounds == 2 else 'pose search'})")
             more, _, more_starts = self._round(rounds, pair)
             poses, costs = self._judge(_joined(poses, more), pair, dense)
             starts += more_starts
-            doubtful, margin = _dense_doubt(select, poses, costs, pair.src, dense)
+            doubtful, margin = self._still_doubtful(poses, costs, pair, dense)
         choice = {"best": int(costs.argmin()), "selection": "dense", "doubtful": doubtful, "confidence": margin}
         return poses, costs, {**choice, "rounds": rounds, "starts": starts, "global": len(found[0]), "dense": dense}
+
+    def _still_doubtful(self, poses: Poses, costs: np.ndarray, pair: _Pair, dense: DenseTarget) -> tuple[bool, float]:
+        """``(doubtful, margin)`` of the dense choice (:func:`_dense_doubt`). A target no denser than
+        the subset (an object's sampling, not a scan) also keeps the first round's doubt test
+        (:func:`doubt` at ``select_nu``): its views overlap their whole shape, and a fitness below
+        ``min_fitness`` still sends them on to the later rounds."""
+        select = self.options.select
+        doubtful, margin = _dense_doubt(select, poses, costs, pair.src, dense)
+        if doubtful or len(dense.points) > len(pair.tgt):
+            return doubtful, margin
+        subset_costs = fixed_scale_cost(poses, pair.src, pair.tgt_index, select.nu)
+        best = int(costs.argmin())
+        subset_doubt = doubt(select, poses, subset_costs, pair.src, pair.tgt_index, pair.inlier_distance, best, costs)
+        return subset_doubt[0], margin
 
     def _judge(self, poses: Poses, pair: _Pair, dense: DenseTarget) -> tuple[Poses, np.ndarray]:
         """The ``dense_keep`` distinct candidates of lowest dense cost, after the dense polish, and
         their dense costs (:mod:`~linereg.registration.global_stage`)."""
         settings = self.options.global_stage
-        order = np.argsort(dense_costs(poses, pair.src, dense, settings), kind="stable")
+        order = np.argsort(dense_costs(poses, pair.src, dense), kind="stable")
         poses = (poses[0][order], poses[1][order])
         none = np.zeros(len(order), dtype=bool)
         kept = np.flatnonzero(~merged_into_earlier(poses, none, none, self.options.coarse.merge_distance))
         kept = kept[: settings.dense_keep]
         poses = dense_polish((poses[0][kept], poses[1][kept]), pair.src, dense, settings)
-        return poses, dense_costs(poses, pair.src, dense, settings)
+        return poses, dense_costs(poses, pair.src, dense)
 
     def _finish(self, chosen: Poses, fitness: float, pair: _Pair) -> tuple[Poses, dict[str, Any]]:
         """The fine polish and the plane-to-plane steps of the chosen pose, where they apply."""

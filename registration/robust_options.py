@@ -60,7 +60,6 @@ FLAT_KEYS: dict[str, tuple[str, str]] = {
     "dense_steps": ("global_stage", "dense_steps"),
     "dense_end": ("global_stage", "dense_end"),
     "dense_settle": ("global_stage", "dense_settle"),
-    "select_spacings": ("global_stage", "select_spacings"),
     "dense_plane": ("global_stage", "dense_plane"),
 }
 """The flat key of every setting: ``{flat key: (group, field)}``."""
@@ -264,11 +263,9 @@ class GlobalOptions(_Checked):
         dense_keep: candidates of lowest dense cost (distinct: ``merge_distance`` apart) that get
             the dense polish.
         dense_start, dense_steps, dense_end, dense_settle: the dense polish: Welsch scales falling
-            from ``dense_start`` to ``dense_end`` dense spacings
-            in ``dense_steps`` steps, then up to ``dense_settle`` more.
-        select_spacings: scale of the selection cost, in dense spacings (the dense polish's last
-            scale: every candidate is a local minimum of that cost; a coarser scale rewards a pose
-            that brings more of a partly overlapping view near the target, such as a flipped airplane).
+            from ``dense_start`` to ``dense_end`` dense spacings (or the polish's last scale, if
+            smaller) in ``dense_steps`` steps, then up to ``dense_settle`` more. The candidates are
+            chosen by the Welsch cost at that last scale.
         dense_plane: the plane-to-plane steps of the chosen pose run with ``plane_nu`` times this
             many dense spacings.
     """
@@ -282,7 +279,6 @@ class GlobalOptions(_Checked):
     dense_steps: int = 10
     dense_end: float = 0.7
     dense_settle: int = 20
-    select_spacings: float = 0.7
     dense_plane: float = 2.0
 
     def __post_init__(self) -> None:
@@ -294,7 +290,6 @@ class GlobalOptions(_Checked):
                 "dense_start",
                 "dense_steps",
                 "dense_end",
-                "select_spacings",
                 "dense_plane",
             ),
             ("dense_settle",),

@@ -1,7 +1,7 @@
 """The ``register`` default's stage for doubtful pairs: global candidates and a dense judgement.
 
-When the first round of :class:`~linereg.registration.robust.RobustRegistration` is doubtful
-(partly overlapping scans, symmetric shapes), FPFH + RANSAC and FGR candidates
+When the first round of :class:`~linereg.registration.robust.RobustRegistration` is doubtful on a
+target with more points than the solver's subset (partly overlapping scans), FPFH + RANSAC and FGR candidates
 (:func:`~linereg.registration.features.global_candidates`) join the local ones, and every
 candidate is judged against a *dense* target: up to ``GlobalOptions.dense_points`` FPS points of
 the whole target instead of the solver's subset. On a room scanned at 1 cm, a subset of 2048

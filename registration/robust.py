@@ -22,7 +22,12 @@ No torch on this path (nor Open3D, numba or matplotlib): ``linereg.register`` an
    scale; ``doubtful_select``): every candidate is a local minimum of that objective, while the
    coarser selection scale rewards a wrong pose that brings more of a partly overlapping view
    near the target.
-5. Fine polish of the chosen pose when the source lies on the target (fitness at least
+5. After a doubtful first round on a target with more points than the subset (a scan), the global
+   stage replaces rounds 2 and 3 as the next step (:mod:`~linereg.registration.global_stage`): FPFH +
+   RANSAC and FGR candidates join, every candidate is polished against a dense target and the
+   lowest dense cost chooses; rounds 2 and 3 follow only while that choice is doubtful, and the
+   choice ends with plane-to-plane steps against the dense target instead of step 6.
+6. Fine polish of the chosen pose when the source lies on the target (fitness at least
    ``fine_fitness``): the IRLS goes on to ``fine_end`` times the point spacing
    (:func:`~linereg.registration.welsch.fine_scales`); partly overlapping scans keep the polish's
    pose. Then, when the two clouds are independent samplings of the surface (almost no source
@@ -269,7 +274,7 @@ class RobustRegistration:
         select = self.options.select
         poses, costs, starts = self._round(1, pair)
         doubtful, confidence, fitness = doubt(select, poses, costs, pair.src, pair.tgt_index, pair.inlier_distance)
-        if doubtful and self.options.global_stage.candidates == "doubtful":
+        if doubtful and self.options.global_stage.candidates == "doubtful" and len(pair.tgt_whole) > len(pair.tgt):
             return self._judged_rounds(pair, poses, starts)
         rounds = 1
         while doubtful and rounds < select.rounds:
@@ -302,7 +307,7 @@ class RobustRegistration:
     def _judged_rounds(self, pair: _Pair, poses: Poses, starts: int) -> tuple[Poses, np.ndarray, dict[str, Any]]:
         """After a doubtful first round: the global candidates join and the dense judgement chooses
         (:meth:`_judge`); rounds 2 and 3 of the local stages add theirs while the choice stays
-        doubtful (:meth:`_still_doubtful`)."""
+        doubtful (:func:`_dense_doubt`)."""
         select = self.options.select
         self._stage("first round doubtful: FPFH + RANSAC and FGR candidates")
         dense = dense_target(
@@ -312,30 +317,16 @@ class RobustRegistration:
         self._stage(f"dense judgement of {len(poses[0]) + len(found[0])} candidates")
         poses, costs = self._judge(_joined(poses, found), pair, dense)
         rounds = 1
-        doubtful, margin = self._still_doubtful(poses, costs, pair, dense)
+        doubtful, margin = _dense_doubt(select, poses, costs, pair.src, dense)
         while doubtful and rounds < select.rounds:
             rounds += 1
             self._stage(f"still doubtful: round {rounds} ({'Adam on CD-W' if rounds == 2 else 'pose search'})")
             more, _, more_starts = self._round(rounds, pair)
             poses, costs = self._judge(_joined(poses, more), pair, dense)
             starts += more_starts
-            doubtful, margin = self._still_doubtful(poses, costs, pair, dense)
+            doubtful, margin = _dense_doubt(select, poses, costs, pair.src, dense)
         choice = {"best": int(costs.argmin()), "selection": "dense", "doubtful": doubtful, "confidence": margin}
         return poses, costs, {**choice, "rounds": rounds, "starts": starts, "global": len(found[0]), "dense": dense}
-
-    def _still_doubtful(self, poses: Poses, costs: np.ndarray, pair: _Pair, dense: DenseTarget) -> tuple[bool, float]:
-        """``(doubtful, margin)`` of the dense choice (:func:`_dense_doubt`). A target no denser than
-        the subset (an object's sampling, not a scan) also keeps the first round's doubt test
-        (:func:`doubt` at ``select_nu``): its views overlap their whole shape, and a fitness below
-        ``min_fitness`` still sends them on to the later rounds."""
-        select = self.options.select
-        doubtful, margin = _dense_doubt(select, poses, costs, pair.src, dense)
-        if doubtful or len(dense.points) > len(pair.tgt):
-            return doubtful, margin
-        subset_costs = fixed_scale_cost(poses, pair.src, pair.tgt_index, select.nu)
-        best = int(costs.argmin())
-        subset_doubt = doubt(select, poses, subset_costs, pair.src, pair.tgt_index, pair.inlier_distance, best, costs)
-        return subset_doubt[0], margin
 
     def _judge(self, poses: Poses, pair: _Pair, dense: DenseTarget) -> tuple[Poses, np.ndarray]:
         """The ``dense_keep`` distinct candidates of lowest dense cost, after the dense polish, and
@@ -375,15 +366,13 @@ class RobustRegistration:
         return chosen, {"fine": fine, "coincident": coincident, "plane": plane}
 
     def _dense_finish(self, chosen: Poses, pair: _Pair, dense: DenseTarget) -> tuple[Poses, dict[str, Any]]:
-        """Plane-to-plane steps of the chosen pose against the dense target when it is denser than
-        the solver's subset (a scan: local planes from 10 of its points are planes) and the clouds
-        are independent samplings of the surface (as in :meth:`_finish`: a point-to-point fit
-        keeps their sampling offset; clouds cut from one sampling coincide where they overlap)."""
+        """Plane-to-plane steps of the chosen pose against the dense target when the clouds are
+        independent samplings of the surface (as in :meth:`_finish`: a point-to-point fit keeps
+        their sampling offset; clouds cut from one sampling coincide where they overlap)."""
         plane = self.options.plane
         distances, _ = dense.index.query(apply(chosen, pair.src)[0])
         coincident = float((distances <= plane.coincident_distance * dense.spacing).mean())
-        sparse = len(dense.points) <= len(pair.tgt)
-        if plane.steps == 0 or sparse or coincident >= plane.coincident_share:
+        if plane.steps == 0 or coincident >= plane.coincident_share:
             return chosen, {"fine": False, "coincident": coincident, "plane": False}
         k, epsilon = plane.neighbours, plane.epsilon
         chosen = plane_to_plane_irls(

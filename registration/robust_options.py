@@ -255,8 +255,10 @@ class GlobalOptions(_Checked):
     the dense judgement of every candidate.
 
     Attributes:
-        candidates: ``"doubtful"``: the FPFH candidates join after a doubtful first round (and the
-            dense judgement chooses); ``"never"``: the rounds of the local stages alone.
+        candidates: ``"doubtful"``: the FPFH candidates join after a doubtful first round when the
+            target has more points than the solver's subset (a scan: FPFH needs a dense sampling,
+            and a dense judgement needs more than the subset), and the dense judgement chooses;
+            ``"never"``: the rounds of the local stages alone.
         feature_points: the FPFH voxel is the spacing of this many FPS target points
             (:class:`~linereg.registration.features.FeatureOptions` ``points``).
         dense_points: FPS points of the target the candidates are polished against and judged by.

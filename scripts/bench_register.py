@@ -3,6 +3,7 @@
     python scripts/bench_register.py                 # 5 partial-vs-whole airplane pairs, 1024 vs 2048 points
     python scripts/bench_register.py --pairs 10 --commands 3 --json
     python scripts/bench_register.py --compare '{"name": "robust", "options": {"rounds": 1}}'
+    python scripts/bench_register.py --scans --repeats 2  # real room scans, the command vs fpfh_ransac
 
 Pairs: :mod:`linereg.datasets.partial_vs_whole` on the ModelNet40 airplanes of the shared data (source a
 hidden-point-removal view of 1024 points, target 2048 points of the whole shape). In one run,
@@ -17,6 +18,14 @@ CPU-bound process spinning ("busy core"), it measures
 * the wall time of ``python -m train.register source=... target=...`` (start-up included), of
   ``python -c "import linereg.registration.api"`` (the library's start-up; the script fails if
   that import loads torch), and of ``python -c "import torch"`` (what a torch command pays first).
+
+With ``--scans`` it times real room scans of the shared data instead, on the machine as it is:
+the 3DMatch redkitchen fragments ``cloud_bin_4`` -> ``cloud_bin_0`` (about 300k points each) and
+the GeoTransformer demo pair ``src.npy`` -> ``ref.npy``. Per pair, the median wall time of
+``python -m train.register source=... target=... gt=...`` (the default method) and of the same
+command with ``method=fpfh_ransac`` (Open3D FPFH + RANSAC + point-to-plane ICP: the reference),
+that of ``python -c "import torch"``, and the errors against the ground truth and the
+``confident`` flag of both, read from the commands' ``result.json``.
 
 Absolute times depend on the machine and on what else runs: compare the ratios of one run.
 """
@@ -65,13 +74,17 @@ def _solver_times(method, pairs) -> tuple[list[float], list[float]]:
     return seconds, errors
 
 
+def _env() -> dict[str, str]:
+    """The environment of the timed commands: the checkout first on ``PYTHONPATH``."""
+    return dict(os.environ, PYTHONPATH=os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")]))
+
+
 def _wall(command: list[str], cwd: Path, repeats: int) -> float:
     """Median wall-clock seconds of ``command`` (must succeed)."""
-    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")]))
     times = []
     for _ in range(repeats):
         start = time.perf_counter()
-        subprocess.run(command, cwd=cwd, env=env, check=True, capture_output=True)
+        subprocess.run(command, cwd=cwd, env=_env(), check=True, capture_output=True)
         times.append(time.perf_counter() - start)
     return statistics.median(times)
 
@@ -107,18 +120,124 @@ def measure(pairs, folder: Path, commands: int, compare: dict | None) -> dict[st
     return row
 
 
+# Redkitchen's ground truth: cloud_bin_4 points into cloud_bin_0.
+_REDKITCHEN_GT = [
+    [0.97995721, -0.08093595, 0.18187661, -0.08650046],
+    [0.09801947, 0.99135145, -0.08698794, -0.45825166],
+    [-0.17327237, 0.1030775, 0.97944105, 0.5075809],
+    [0.0, 0.0, 0.0, 1.0],
+]
+# name: (source, target, ground truth: a file or a matrix), relative to the shared data.
+SCAN_PAIRS = {
+    "redkitchen 4->0": (
+        "3dmatch/redkitchen_0_4/cloud_bin_4.ply",
+        "3dmatch/redkitchen_0_4/cloud_bin_0.ply",
+        _REDKITCHEN_GT,
+    ),
+    "geotransformer demo": (
+        "3dmatch/geotransformer_demo/demo/src.npy",
+        "3dmatch/geotransformer_demo/demo/ref.npy",
+        "3dmatch/geotransformer_demo/demo/gt.npy",
+    ),
+}
+
+
+def _register_runs(arguments: list[str], folder: Path, repeats: int) -> tuple[float, dict]:
+    """Median wall-clock seconds of ``python -m train.register <arguments>`` and its last ``result.json``."""
+    folder.mkdir()
+    times = []
+    for run in range(repeats):
+        out = folder / f"run{run}"
+        command = [sys.executable, "-m", "train.register", *arguments, f"hydra.run.dir={out}"]
+        start = time.perf_counter()
+        done = subprocess.run(command, cwd=folder, env=_env(), capture_output=True, text=True)
+        times.append(time.perf_counter() - start)
+        if done.returncode != 0:
+            lines = (done.stderr or done.stdout).strip().splitlines() or ["no output"]
+            raise SystemExit(f"{' '.join(command[1:])} failed: {lines[-1]}")
+    return statistics.median(times), json.loads((out / "result.json").read_text())
+
+
+def measure_scans(data: Path, folder: Path, repeats: int) -> dict[str, dict]:
+    """One row per scan pair of :data:`SCAN_PAIRS` found under ``data``: command and reference times,
+    their ratio, and both methods' errors; absent pairs are skipped with a note on stderr."""
+    rows = {}
+    for name, (source, target, gt) in SCAN_PAIRS.items():
+        missing = [path for path in (source, target, gt) if isinstance(path, str) and not (data / path).is_file()]
+        if missing:
+            print(f"skipping {name}: {', '.join(str(data / path) for path in missing)} not found", file=sys.stderr)
+            continue
+        pair = folder / name.replace(" ", "_").replace(">", "")
+        pair.mkdir()
+        if not isinstance(gt, str):
+            np.savetxt(pair / "gt.txt", np.asarray(gt))
+        gt_file = data / gt if isinstance(gt, str) else pair / "gt.txt"
+        arguments = [f"source={data / source}", f"target={data / target}", f"gt={gt_file}"]
+        command, report = _register_runs(arguments, pair / "default", repeats)
+        reference, ref_report = _register_runs([*arguments, "method=fpfh_ransac"], pair / "fpfh_ransac", repeats)
+        floor = _wall([sys.executable, "-c", "import torch"], pair, repeats)
+        rows[name] = {
+            "source_points": report["source_points"],
+            "target_points": report["target_points"],
+            "command_s": command,
+            "fpfh_ransac_command_s": reference,
+            "command_vs_fpfh_ransac": command / reference,
+            "import_torch_s": floor,
+            "command_vs_import_torch": command / floor,
+            "err_r_deg": report["metrics"]["err_r_deg"],
+            "translation_error": report["metrics"]["translation_error"],
+            "confident": report["confident"],
+            "fpfh_ransac_err_r_deg": ref_report["metrics"]["err_r_deg"],
+            "fpfh_ransac_translation_error": ref_report["metrics"]["translation_error"],
+            "fpfh_ransac_confident": ref_report["confident"],
+        }
+    return rows
+
+
+def print_scans(rows: dict[str, dict], repeats: int) -> None:
+    """The ``--scans`` rows as a markdown table."""
+    print(f"real scans, medians of {repeats} run(s) of each command, {os.cpu_count()} CPUs\n")
+    print(
+        "| pair | points (source/target) | command wall (s) | fpfh_ransac command wall (s) | command / fpfh_ransac "
+        "| import torch (s) | command / import torch | Err_R (deg) | translation error (m) | confident "
+        "| fpfh_ransac Err_R (deg) | fpfh_ransac translation error (m) | fpfh_ransac confident |"
+    )
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|")
+    for name, row in rows.items():
+        print(
+            f"| {name} | {row['source_points']}/{row['target_points']} | {row['command_s']:.2f} "
+            f"| {row['fpfh_ransac_command_s']:.2f} | {row['command_vs_fpfh_ransac']:.2f}x "
+            f"| {row['import_torch_s']:.2f} "
+            f"| {row['command_vs_import_torch']:.2f}x | {row['err_r_deg']:.3f} | {row['translation_error']:.4f} "
+            f"| {row['confident']} | {row['fpfh_ransac_err_r_deg']:.3f} | {row['fpfh_ransac_translation_error']:.4f} "
+            f"| {row['fpfh_ransac_confident']} |"
+        )
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--pairs", type=int, default=5, help="timed pairs (one more is the warm-up)")
     parser.add_argument("--commands", type=int, default=3, help="runs of each command")
     parser.add_argument("--json", action="store_true")
     parser.add_argument("--compare", type=json.loads, help='method config (JSON) to time beside, e.g. {"name": "fgr"}')
+    parser.add_argument("--scans", action="store_true", help="time real room scans: the command vs fpfh_ransac")
+    parser.add_argument("--repeats", type=int, default=2, help="runs of each command with --scans")
     args = parser.parse_args(argv)
     if args.compare is not None:
         METHODS.build(args.compare)  # a bad config fails here, before any timing
     data = shared_data_dir()
     if data is None:
         parser.error("the shared data folder was not found (set $LINEREG_SHARED_DATA)")
+    if args.scans:
+        with tempfile.TemporaryDirectory() as folder:
+            rows = measure_scans(data, Path(folder), args.repeats)
+        if not rows:
+            parser.error(f"no scan pair was found under {data}")
+        if args.json:
+            print(json.dumps(rows))
+        else:
+            print_scans(rows, args.repeats)
+        return 0
     pairs = partial_vs_whole_pairs(
         data / "modelnet40_normal_resampled", pairs=args.pairs + 1, seed=0, patterns=["airplane/*.txt"]
     )

@@ -154,6 +154,17 @@ def test_register_command_writes_its_outputs(tmp_path):
     assert not (out / "registration.png").exists()
 
 
+def test_a_registered_baseline_gets_its_flag_from_the_same_test(tmp_path):
+    """``method=icp_point`` runs as any method does (no ``refine`` reaches it) and is flagged by the same test."""
+    src = surface(600, 4)
+    write_point_cloud(tmp_path / "a.xyz", src)
+    write_point_cloud(tmp_path / "b.xyz", apply(pose([4, -3, 2], [0.03, 0.0, -0.02]), surface(800, 5)))
+    _, report = register_files(
+        _compose(source=tmp_path / "a.xyz", target=tmp_path / "b.xyz", method="icp_point"), tmp_path / "run"
+    )
+    assert report["method"]["name"] == "icp_point" and isinstance(report["confident"], bool)
+
+
 def test_register_with_a_chosen_loss_and_the_svd_solver(tmp_path):
     src = surface(500, 3)
     write_point_cloud(tmp_path / "a.xyz", src)

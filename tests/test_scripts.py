@@ -26,3 +26,13 @@ def test_every_script_prints_its_help(name, capsys):
         module.main(["--help"])
     assert exit_info.value.code == 0
     assert capsys.readouterr().out.startswith("usage: ")
+
+
+def test_bench_register_scans_without_the_scans_fails_clearly(tmp_path, monkeypatch, capsys):
+    monkeypatch.setenv("LINEREG_SHARED_DATA", str(tmp_path))
+    module = importlib.import_module("scripts.bench_register")
+    with pytest.raises(SystemExit) as exit_info:
+        module.main(["--scans"])
+    assert exit_info.value.code == 2
+    error = capsys.readouterr().err
+    assert "skipping redkitchen 4->0" in error and "no scan pair was found" in error

@@ -197,7 +197,7 @@ def _register(cfg: DictConfig, src, tgt, init: np.ndarray | None, gt: np.ndarray
                 method=config,
                 device=cfg.device if cfg.method is not None else None,
                 fitness_threshold=cfg.fitness_threshold,
-                **(options if cfg.method is not None else {}),
+                **(options if cfg.method is not None and cfg.refine else {}),
             )
         except (KeyError, TypeError, ValueError) as error:
             raise RegisterError(str(error)) from error

@@ -28,7 +28,7 @@ INLIER_DISTANCES = 3.0
 """The fitness threshold of :func:`assess_registration`, in sampling distances."""
 MIN_FITNESS = 0.1
 """Fewest share of source inliers for a confident pose (a correct pair at 20 % overlap scores about 0.2)."""
-MAX_INLIER_RMSE = 1.25
+MAX_INLIER_RMSE = 1.2
 """Largest inlier RMS distance of a confident pose, in sampling distances."""
 ASSESS_SOURCE_POINTS = 2048
 """FPS points of the source :func:`assess_registration` moves."""

@@ -142,7 +142,8 @@ def run_benchmark(
         progress: show a tqdm bar.
         journal: a JSON-lines file that receives every record as soon as it is measured;
             records already in it (same pair and method) are reused, so an interrupted run
-            resumes where it stopped.
+            resumes where it stopped; their ``confident`` flag is measured again (it depends on
+            the pair and the transform only).
 
     Returns:
         One record per (pair, method), pairs outer: ``pair`` (position in ``pairs``),
@@ -171,8 +172,7 @@ def run_benchmark(
         for name, method in methods.items():
             if (index, name) in done:
                 record = done[(index, name)]
-                if "confident" not in record:
-                    record.update(_confidence(pair, record["transform"]))
+                record.update(_confidence(pair, record["transform"]))
                 records.append(record)
                 bar.update()
                 continue

@@ -112,7 +112,16 @@ def collect(count: int) -> list[dict]:
                 fitness, rmse = measured(pair.src_xyz.astype(np.float64), tgt, transform)
                 right = err_r <= 2.0 and err_t <= 0.02 * diagonal
                 rows.append(
-                    {"source": name, "pair": index, "pose": kind, "right": right, "fitness": fitness, "rmse": rmse}
+                    {
+                        "source": name,
+                        "pair": index,
+                        "pose": kind,
+                        "err_r": err_r,
+                        "err_t": err_t / diagonal,
+                        "right": right,
+                        "fitness": fitness,
+                        "rmse": rmse,
+                    }
                 )
             print(
                 f"{name} pair {index}: {sum(r['right'] for r in rows if r['source'] == name)} right poses so far",

@@ -22,10 +22,10 @@ CPU-bound process spinning ("busy core"), it measures
 With ``--scans`` it times real room scans of the shared data instead, on the machine as it is:
 the 3DMatch redkitchen fragments ``cloud_bin_4`` -> ``cloud_bin_0`` (about 300k points each) and
 the GeoTransformer demo pair ``src.npy`` -> ``ref.npy``. Per pair, the median wall time of
-``python -m train.register source=... target=... gt=...`` (the default method) and of the same
-command with ``method=fpfh_ransac`` (Open3D FPFH + RANSAC + point-to-plane ICP: the reference),
-that of ``python -c "import torch"``, and the errors against the ground truth and the
-``confident`` flag of both, read from the commands' ``result.json``.
+``python -m train.register source=... target=...`` as a user types it (the default method) and of
+the same command with ``method=fpfh_ransac`` (Open3D FPFH + RANSAC + point-to-plane ICP: the
+reference), that of ``python -c "import torch"``, the errors of both transforms (``result.json``)
+against the ground truth and their ``confident`` flags.
 
 Absolute times depend on the machine and on what else runs: compare the ratios of one run.
 """
@@ -158,9 +158,18 @@ def _register_runs(arguments: list[str], folder: Path, repeats: int) -> tuple[fl
     return statistics.median(times), json.loads((out / "result.json").read_text())
 
 
+def pose_errors(transform, truth: np.ndarray) -> tuple[float, float]:
+    """Rotation error (deg) and translation error (input units) of ``transform`` against ``truth (4, 4)``."""
+    transform = np.asarray(transform, dtype=np.float64)
+    cos = (np.trace(transform[:3, :3].T @ truth[:3, :3]) - 1.0) / 2.0
+    return float(np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))), float(np.linalg.norm(transform[:3, 3] - truth[:3, 3]))
+
+
 def measure_scans(data: Path, folder: Path, repeats: int) -> dict[str, dict]:
     """One row per scan pair of :data:`SCAN_PAIRS` found under ``data``: command and reference times,
     their ratio, and both methods' errors; absent pairs are skipped with a note on stderr."""
+    from linereg.io import read_transform
+
     rows = {}
     for name, (source, target, gt) in SCAN_PAIRS.items():
         missing = [path for path in (source, target, gt) if isinstance(path, str) and not (data / path).is_file()]
@@ -169,13 +178,12 @@ def measure_scans(data: Path, folder: Path, repeats: int) -> dict[str, dict]:
             continue
         pair = folder / name.replace(" ", "_").replace(">", "")
         pair.mkdir()
-        if not isinstance(gt, str):
-            np.savetxt(pair / "gt.txt", np.asarray(gt))
-        gt_file = data / gt if isinstance(gt, str) else pair / "gt.txt"
-        arguments = [f"source={data / source}", f"target={data / target}", f"gt={gt_file}"]
+        truth = nearest_rigid(read_transform(data / gt) if isinstance(gt, str) else np.asarray(gt, dtype=np.float64))
+        arguments = [f"source={data / source}", f"target={data / target}"]
         command, report = _register_runs(arguments, pair / "default", repeats)
         reference, ref_report = _register_runs([*arguments, "method=fpfh_ransac"], pair / "fpfh_ransac", repeats)
         floor = _wall([sys.executable, "-c", "import torch"], pair, repeats)
+        (err_r, err_t), (ref_r, ref_t) = (pose_errors(r["transform"], truth) for r in (report, ref_report))
         rows[name] = {
             "source_points": report["source_points"],
             "target_points": report["target_points"],
@@ -184,14 +192,23 @@ def measure_scans(data: Path, folder: Path, repeats: int) -> dict[str, dict]:
             "command_vs_fpfh_ransac": command / reference,
             "import_torch_s": floor,
             "command_vs_import_torch": command / floor,
-            "err_r_deg": report["metrics"]["err_r_deg"],
-            "translation_error": report["metrics"]["translation_error"],
+            "err_r_deg": err_r,
+            "translation_error": err_t,
             "confident": report["confident"],
-            "fpfh_ransac_err_r_deg": ref_report["metrics"]["err_r_deg"],
-            "fpfh_ransac_translation_error": ref_report["metrics"]["translation_error"],
+            "fpfh_ransac_err_r_deg": ref_r,
+            "fpfh_ransac_translation_error": ref_t,
             "fpfh_ransac_confident": ref_report["confident"],
         }
     return rows
+
+
+def nearest_rigid(matrix: np.ndarray) -> np.ndarray:
+    """``matrix (4, 4)`` with its rotation block replaced by the nearest rotation (a ground truth stored in float32)."""
+    from linereg.checks import nearest_rotation
+
+    rigid = np.array(matrix, dtype=np.float64)
+    rigid[:3, :3] = nearest_rotation(rigid[:3, :3])
+    return rigid
 
 
 def print_scans(rows: dict[str, dict], repeats: int) -> None:

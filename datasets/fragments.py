@@ -346,6 +346,9 @@ def draw_pairs(overlaps: np.ndarray, bins: Sequence[Sequence[float]], pairs: int
     """
     if pairs < 1 or not bins:
         raise ValueError(f"need pairs >= 1 and at least one bin, got {pairs} and {list(bins)}")
+    for low, high in bins:
+        if not 0.0 <= low < high <= 1.0:
+            raise ValueError(f"overlap bin [{low}, {high}]: expected 0 <= low < high <= 1")
     membership = np.array([-1 if (b := bin_index(value, bins)) is None else b for value in overlaps])
     rng = np.random.default_rng(seed)
     chosen = []

@@ -61,6 +61,8 @@ def test_draw_pairs_is_balanced_seeded_and_warns_when_a_bin_runs_short():
     assert len({c for c, _ in drawn}) == len(drawn)
     assert draw_pairs(overlaps, bins[1:], 6, seed=1) == draw_pairs(overlaps, bins[1:], 6, seed=1)
     assert draw_pairs(overlaps, bins[1:], 6, seed=1) != draw_pairs(overlaps, bins[1:], 6, seed=2)
+    with pytest.raises(ValueError, match=r"overlap bin \[0.5, 0.2\]"):
+        draw_pairs(overlaps, [[0.5, 0.2]], 6, seed=1)
 
 
 def test_settings_are_checked():

@@ -35,7 +35,6 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from linereg.datasets.cache import settings_key
 from linereg.datasets.formats import Intrinsics, read_depth_image
@@ -50,6 +49,7 @@ from linereg.datasets.rgbd import (
     _tum_frames,
     depth_to_points,
 )
+from linereg.knn import NearestNeighbors
 from linereg.pointcloud import estimate_normals
 from linereg.structures import PairSample
 
@@ -183,10 +183,10 @@ def fuse_fragment(
     return np.asarray(fused.voxel_down_sample(voxel_size).points)
 
 
-def _overlap_with_tree(tree: cKDTree, source: np.ndarray, transform: np.ndarray, radius: float) -> float:
-    """Share of ``source (N, 3)`` points within ``radius`` of the points of ``tree`` after ``transform``."""
+def _overlap_with_index(index: NearestNeighbors, source: np.ndarray, transform: np.ndarray, radius: float) -> float:
+    """Share of ``source (N, 3)`` points within ``radius`` of the indexed points after ``transform``."""
     moved = np.asarray(source, dtype=np.float64) @ transform[:3, :3].T + transform[:3, 3]
-    distances, _ = tree.query(moved, distance_upper_bound=radius)
+    distances, _ = index.query(moved, distance_upper_bound=radius)
     return float(np.mean(distances <= radius))
 
 
@@ -215,7 +215,9 @@ def overlap_ratio(
     source = np.asarray(source, dtype=np.float64)
     if max_points is not None and len(source) > max_points:
         source = source[np.random.default_rng(seed).choice(len(source), max_points, replace=False)]
-    return _overlap_with_tree(cKDTree(np.asarray(target, dtype=np.float64)), source, np.asarray(transform), radius)
+    return _overlap_with_index(
+        NearestNeighbors(np.asarray(target, dtype=np.float64)), source, np.asarray(transform), radius
+    )
 
 
 def build_fragments(root: Path, settings: FragmentSettings) -> Fragments:
@@ -242,14 +244,14 @@ def build_fragments(root: Path, settings: FragmentSettings) -> Fragments:
         normals.append(estimate_normals(points, k=min(settings.normal_k, len(points) - 1), orient_towards=np.zeros(3)))
     poses = np.stack([frames[s].pose for s in starts])
     pairs = [(a, b) for b in range(len(starts)) for a in range(b) if starts[b] - starts[a] >= length]
-    trees = [cKDTree(points) for points in xyz]
+    indexes = [NearestNeighbors(points) for points in xyz]
     overlaps = []
     for a, b in pairs:
         source = xyz[b]
         if settings.overlap_points is not None and len(source) > settings.overlap_points:
             source = source[np.random.default_rng([a, b]).choice(len(source), settings.overlap_points, replace=False)]
         gt = np.linalg.inv(poses[a]) @ poses[b]
-        overlaps.append(_overlap_with_tree(trees[a], source, gt, settings.overlap_radius))
+        overlaps.append(_overlap_with_index(indexes[a], source, gt, settings.overlap_radius))
     return Fragments(
         xyz=xyz,
         normals=normals,

@@ -44,6 +44,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from linereg.pointcloud import estimate_normals
+from linereg.registration.features import FeatureOptions, global_candidates, open3d_cloud
 from linereg.registration.methods import METHODS, MethodResult, run_centered
 
 FRICP_VARIANTS = ("ICP", "AA_ICP", "FICP", "RICP", "PPL", "RPPL")
@@ -54,16 +55,6 @@ Fast ICP, Robust ICP (the paper's FRICP, default), point-to-plane and robust poi
 def diameter(points: np.ndarray) -> float:
     """Diagonal of the axis-aligned bounding box of ``points (N, 3)`` (at least 1e-12)."""
     return max(float(np.linalg.norm(points.max(axis=0) - points.min(axis=0))), 1e-12)
-
-
-def _open3d_cloud(points: np.ndarray, normals: np.ndarray | None = None):
-    """An ``open3d.geometry.PointCloud`` of ``points (N, 3)`` (and ``normals``)."""
-    import open3d as o3d
-
-    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(points, dtype=np.float64)))
-    if normals is not None:
-        cloud.normals = o3d.utility.Vector3dVector(np.asarray(normals, dtype=np.float64))
-    return cloud
 
 
 def _normals_or_estimate(points: np.ndarray, normals: np.ndarray | None, k: int) -> np.ndarray:
@@ -99,8 +90,8 @@ def _open3d_icp(
 
     registration = o3d.pipelines.registration
     result = registration.registration_icp(
-        _open3d_cloud(src),
-        _open3d_cloud(tgt, tgt_normals),
+        open3d_cloud(src),
+        open3d_cloud(tgt, tgt_normals),
         max_distance,
         np.eye(4),
         estimation,
@@ -226,7 +217,7 @@ class FastGlobalRegistration:
         """Down-sampled Open3D cloud (with normals) and its FPFH features."""
         import open3d as o3d
 
-        cloud = _open3d_cloud(points, _normals_or_estimate(points, normals, self.normal_k))
+        cloud = open3d_cloud(points, _normals_or_estimate(points, normals, self.normal_k))
         if self.voxel_ratio > 0:
             cloud = cloud.voxel_down_sample(self.voxel_ratio * scale)
         search = o3d.geometry.KDTreeSearchParamHybrid(
@@ -280,8 +271,6 @@ class FeatureRANSAC:
 
     def _solve(self, src, tgt, src_normals, tgt_normals) -> MethodResult:
         import open3d as o3d
-
-        from linereg.registration.features import FeatureOptions, global_candidates
 
         options = FeatureOptions(points=self.points, mutual=(True,), fgr=False)
         found, grids = global_candidates(src, tgt, options, seed=self.seed)

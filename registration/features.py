@@ -64,11 +64,14 @@ def feature_voxel(points: np.ndarray, count: int) -> float:
     return point_spacing(fps(np.asarray(points, dtype=np.float64), count))
 
 
-def open3d_cloud(points: np.ndarray):
-    """An Open3D ``PointCloud`` of ``points (N, 3)``."""
+def open3d_cloud(points: np.ndarray, normals: np.ndarray | None = None):
+    """An Open3D ``PointCloud`` of ``points (N, 3)`` (and ``normals``)."""
     import open3d as o3d
 
-    return o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(points, dtype=np.float64)))
+    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(points, dtype=np.float64)))
+    if normals is not None:
+        cloud.normals = o3d.utility.Vector3dVector(np.asarray(normals, dtype=np.float64))
+    return cloud
 
 
 def fpfh(points: np.ndarray, voxel: float, options: FeatureOptions) -> tuple[Any, Any]:

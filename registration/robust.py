@@ -349,42 +349,48 @@ class RobustRegistration:
             chosen = welsch_irls(chosen, pair.src, pair.tgt_index, fine_nus, options.polish.settle)
         coincident, plane = None, False
         if fine and options.plane.steps > 0:
-            distances, _ = pair.tgt_index.query(apply(chosen, pair.src)[0])
-            coincident = float((distances <= options.plane.coincident_distance * pair.spacing).mean())
-            plane = coincident < options.plane.coincident_share
-            if plane:
-                k, epsilon = options.plane.neighbours, options.plane.epsilon
-                chosen = plane_to_plane_irls(
-                    chosen,
-                    pair.src,
-                    surface_covariances(pair.src, k, epsilon),
-                    pair.tgt_index,
-                    surface_covariances(pair.tgt, k, epsilon),
-                    options.plane.nu * pair.spacing,
-                    options.plane.steps,
-                )
+            chosen, coincident, plane = self._plane_steps(chosen, pair.src, pair.tgt, pair.tgt_index, pair.spacing)
         return chosen, {"fine": fine, "coincident": coincident, "plane": plane}
 
     def _dense_finish(self, chosen: Poses, pair: _Pair, dense: DenseTarget) -> tuple[Poses, dict[str, Any]]:
-        """Plane-to-plane steps of the chosen pose against the dense target when the clouds are
-        independent samplings of the surface (as in :meth:`_finish`: a point-to-point fit keeps
-        their sampling offset; clouds cut from one sampling coincide where they overlap)."""
+        """The plane-to-plane steps of the chosen pose against the dense target, at
+        ``dense_plane`` times the scale of :meth:`_finish` (:meth:`_plane_steps`)."""
+        if self.options.plane.steps == 0:
+            return chosen, {"fine": False, "coincident": None, "plane": False}
+        widen = self.options.global_stage.dense_plane
+        chosen, coincident, plane = self._plane_steps(chosen, pair.src, dense.points, dense.index, dense.spacing, widen)
+        return chosen, {"fine": False, "coincident": coincident, "plane": plane}
+
+    def _plane_steps(
+        self,
+        chosen: Poses,
+        src: np.ndarray,
+        tgt: np.ndarray,
+        tgt_index: NearestNeighbors,
+        spacing: float,
+        widen: float = 1.0,
+    ) -> tuple[Poses, float, bool]:
+        """Plane-to-plane steps of ``chosen`` (``plane_nu * widen`` spacings) when the clouds are
+        independent samplings of the surface: fewer than ``coincident_share`` of the source points
+        lie within ``coincident_distance`` spacings of a target point (clouds cut from one sampling
+        coincide where they overlap, and a point-to-point fit is exact there). Returns the pose,
+        that share and whether the steps ran."""
         plane = self.options.plane
-        distances, _ = dense.index.query(apply(chosen, pair.src)[0])
-        coincident = float((distances <= plane.coincident_distance * dense.spacing).mean())
-        if plane.steps == 0 or coincident >= plane.coincident_share:
-            return chosen, {"fine": False, "coincident": coincident, "plane": False}
+        distances, _ = tgt_index.query(apply(chosen, src)[0])
+        coincident = float((distances <= plane.coincident_distance * spacing).mean())
+        if coincident >= plane.coincident_share:
+            return chosen, coincident, False
         k, epsilon = plane.neighbours, plane.epsilon
         chosen = plane_to_plane_irls(
             chosen,
-            pair.src,
-            surface_covariances(pair.src, k, epsilon),
-            dense.index,
-            surface_covariances(dense.points, k, epsilon),
-            plane.nu * dense.spacing * self.options.global_stage.dense_plane,
+            src,
+            surface_covariances(src, k, epsilon),
+            tgt_index,
+            surface_covariances(tgt, k, epsilon),
+            plane.nu * spacing * widen,
             plane.steps,
         )
-        return chosen, {"fine": False, "coincident": coincident, "plane": True}
+        return chosen, coincident, True
 
     def _solve(self, src, tgt, src_normals, tgt_normals) -> MethodResult:
         self._started = time.perf_counter()

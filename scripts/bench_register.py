@@ -49,11 +49,13 @@ sys.path.insert(0, str(ROOT))
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
+from linereg.checks import nearest_rotation  # noqa: E402
 from linereg.datasets.partial_vs_whole import partial_vs_whole_pairs  # noqa: E402
 from linereg.io import write_point_cloud  # noqa: E402
 from linereg.metrics import rotation_error_deg  # noqa: E402
 from linereg.paths import shared_data_dir  # noqa: E402
 from linereg.registration import METHODS  # noqa: E402
+from linereg.registration.poses import rotation_gap_deg  # noqa: E402
 
 
 def _spin() -> None:
@@ -161,8 +163,8 @@ def _register_runs(arguments: list[str], folder: Path, repeats: int) -> tuple[fl
 def pose_errors(transform, truth: np.ndarray) -> tuple[float, float]:
     """Rotation error (deg) and translation error (input units) of ``transform`` against ``truth (4, 4)``."""
     transform = np.asarray(transform, dtype=np.float64)
-    cos = (np.trace(transform[:3, :3].T @ truth[:3, :3]) - 1.0) / 2.0
-    return float(np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))), float(np.linalg.norm(transform[:3, 3] - truth[:3, 3]))
+    rotation = float(rotation_gap_deg(transform[None, :3, :3], truth[:3, :3])[0])
+    return rotation, float(np.linalg.norm(transform[:3, 3] - truth[:3, 3]))
 
 
 def measure_scans(data: Path, folder: Path, repeats: int) -> dict[str, dict]:
@@ -178,7 +180,8 @@ def measure_scans(data: Path, folder: Path, repeats: int) -> dict[str, dict]:
             continue
         pair = folder / name.replace(" ", "_").replace(">", "")
         pair.mkdir()
-        truth = nearest_rigid(read_transform(data / gt) if isinstance(gt, str) else np.asarray(gt, dtype=np.float64))
+        truth = np.array(read_transform(data / gt) if isinstance(gt, str) else gt, dtype=np.float64)
+        truth[:3, :3] = nearest_rotation(truth[:3, :3])  # ground truths stored in float32
         arguments = [f"source={data / source}", f"target={data / target}"]
         command, report = _register_runs(arguments, pair / "default", repeats)
         reference, ref_report = _register_runs([*arguments, "method=fpfh_ransac"], pair / "fpfh_ransac", repeats)
@@ -200,15 +203,6 @@ def measure_scans(data: Path, folder: Path, repeats: int) -> dict[str, dict]:
             "fpfh_ransac_confident": ref_report["confident"],
         }
     return rows
-
-
-def nearest_rigid(matrix: np.ndarray) -> np.ndarray:
-    """``matrix (4, 4)`` with its rotation block replaced by the nearest rotation (a ground truth stored in float32)."""
-    from linereg.checks import nearest_rotation
-
-    rigid = np.array(matrix, dtype=np.float64)
-    rigid[:3, :3] = nearest_rotation(rigid[:3, :3])
-    return rigid
 
 
 def print_scans(rows: dict[str, dict], repeats: int) -> None:

@@ -56,6 +56,7 @@ from linereg.metrics import (
     rotation_error_deg,
 )
 from linereg.registration.api import quality
+from linereg.registration.baselines import diameter
 from linereg.registration.methods import METHODS, Method
 from linereg.registry import UnknownNameError
 from linereg.structures import PairSample
@@ -94,19 +95,13 @@ def object_diameter(points: np.ndarray) -> float:
     return 2.0 * float(np.linalg.norm(points - points.mean(axis=0), axis=1).max())
 
 
-def bounding_box_diagonal(points: np.ndarray) -> float:
-    """Length of the diagonal of the axis-aligned bounding box of ``points (N, 3)``."""
-    points = np.asarray(points, dtype=np.float64)
-    return float(np.linalg.norm(points.max(axis=0) - points.min(axis=0)))
-
-
 def _confidence(pair: PairSample, transform: Any) -> dict[str, Any]:
     """``confident``, ``fitness`` (:func:`linereg.registration.api.quality`) and ``bbox_diagonal`` of a result."""
     found = quality(pair.src_xyz, pair.tgt_xyz, np.asarray(transform, dtype=np.float64))
     return {
         "confident": bool(found["confident"]),
         "fitness": float(found["fitness"]),
-        "bbox_diagonal": bounding_box_diagonal(pair.tgt_xyz),
+        "bbox_diagonal": diameter(np.asarray(pair.tgt_xyz, dtype=np.float64)),
     }
 
 
@@ -148,9 +143,9 @@ def run_benchmark(
     Returns:
         One record per (pair, method), pairs outer: ``pair`` (position in ``pairs``),
         ``method``, ``seconds``, every key of :data:`linereg.metrics.ERROR_KEYS` (float),
-        ``diameter`` (:func:`object_diameter` of the target), ``bbox_diagonal``
-        (:func:`bounding_box_diagonal` of the target), ``confident`` and ``fitness``
-        (:func:`linereg.registration.api.quality` of the result), ``transform`` and
+        ``diameter`` (:func:`object_diameter` of the target), ``bbox_diagonal`` (the target's
+        bounding-box diagonal, :func:`linereg.registration.baselines.diameter`), ``confident`` and
+        ``fitness`` (:func:`linereg.registration.api.quality` of the result), ``transform`` and
         ``gt_transform`` (4x4 lists), ``meta`` (the pair's) and ``info`` (the method's).
 
     Raises:

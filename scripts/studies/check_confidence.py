@@ -24,12 +24,13 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
 import linereg.registration.robust as robust
+from linereg.checks import nearest_rotation
 from linereg.datasets.benchmark_pairs import select_pairs
 from linereg.fps import farthest_point_subset as fps
 from linereg.knn import NearestNeighbors
 from linereg.registration import evaluation
 from linereg.registration.methods import METHODS, translation
-from linereg.registration.poses import as_matrices
+from linereg.registration.poses import as_matrices, rotation_gap_deg
 
 SOURCES = {
     "airplane": {"name": "airplane"},
@@ -53,17 +54,6 @@ class CandidateRecorder(robust.RobustRegistration):
         self.candidates = as_matrices(poses)
         self.candidates[:, :3, 3] *= self.radius
         return poses, costs, choice
-
-
-def rotation_error_deg(transform: np.ndarray, truth: np.ndarray) -> float:
-    cos = (np.trace(transform[:3, :3].T @ evaluation_rotation(truth)) - 1.0) / 2.0
-    return float(np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))))
-
-
-def evaluation_rotation(truth: np.ndarray) -> np.ndarray:
-    """The nearest rotation of a ground truth stored in float32."""
-    u, _, vt = np.linalg.svd(truth[:3, :3])
-    return u @ np.diag([1.0, 1.0, np.linalg.det(u @ vt)]) @ vt
 
 
 def measured(source: np.ndarray, target: np.ndarray, transform: np.ndarray) -> tuple[float, float]:
@@ -104,10 +94,11 @@ def collect(count: int) -> list[dict]:
     for name in SOURCES:
         for index, pair in enumerate(source_pairs(name, count)):
             truth = pair.gt_transform.astype(np.float64)
+            truth[:3, :3] = nearest_rotation(truth[:3, :3])  # ground truths stored in float32
             tgt = pair.tgt_xyz.astype(np.float64)
             diagonal = float(np.linalg.norm(tgt.max(axis=0) - tgt.min(axis=0)))
             for kind, transform in poses_of(name, pair):
-                err_r = rotation_error_deg(transform, truth)
+                err_r = float(rotation_gap_deg(transform[None, :3, :3], truth[:3, :3])[0])
                 err_t = float(np.linalg.norm(transform[:3, 3] - truth[:3, 3]))
                 fitness, rmse = measured(pair.src_xyz.astype(np.float64), tgt, transform)
                 right = err_r <= 2.0 and err_t <= 0.02 * diagonal

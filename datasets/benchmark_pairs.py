@@ -360,6 +360,7 @@ def fragments_source(
     dense_points: int | None = 30000,
     num_points: int | None = None,
     cache_dir: str | None = None,
+    ground_truth: str = "refined",
     **settings: Any,
 ) -> list[PairSample]:
     """Independently fused fragments of a real room drawn from overlap bins (:mod:`linereg.datasets.fragments`).
@@ -372,6 +373,7 @@ def fragments_source(
         dense_points: random cap of each cloud (``None``: the whole fragment).
         num_points: FPS size of each cloud after the cap (``None``: keep them all).
         cache_dir: fragment cache folder (``None``: ``$XDG_CACHE_HOME/linereg`` or ``~/.cache/linereg``).
+        ground_truth: ``"refined"`` or ``"tracking"`` (:func:`~linereg.datasets.fragments.fragment_pairs`).
         **settings: fields of :class:`~linereg.datasets.fragments.FragmentSettings`.
     """
     return fragment_pairs(
@@ -383,6 +385,7 @@ def fragments_source(
         num_points=num_points,
         cache_dir=cache_dir,
         settings=FragmentSettings(**settings),
+        ground_truth=ground_truth,
     )
 
 

@@ -203,6 +203,16 @@ def resample_indices(
     return np.concatenate([rng.permutation(num_points), extra]).astype(np.int64)
 
 
+def open3d_cloud(points: np.ndarray, normals: np.ndarray | None = None):
+    """An Open3D ``PointCloud`` of ``points (N, 3)`` (and unit ``normals (N, 3)``), float64."""
+    import open3d as o3d
+
+    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(points, dtype=np.float64)))
+    if normals is not None:
+        cloud.normals = o3d.utility.Vector3dVector(np.asarray(normals, dtype=np.float64))
+    return cloud
+
+
 def estimate_normals(
     points: np.ndarray,
     *,
@@ -234,7 +244,7 @@ def estimate_normals(
         raise ValueError(f"k must be at least 3 to fit a plane, got {k}")
     import open3d as o3d
 
-    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(points, np.float64)))
+    cloud = open3d_cloud(points)
     search = (
         o3d.geometry.KDTreeSearchParamKNN(k)
         if radius is None
@@ -346,10 +356,8 @@ def hidden_point_removal(points: np.ndarray, camera: np.ndarray, *, radius_facto
         Sorted int64 array of visible point indices.
     """
     check_points(points, "points", min_points=4, batched=False)
-    import open3d as o3d
-
     camera = np.asarray(camera, dtype=np.float64).reshape(3)
-    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(points, np.float64)))
+    cloud = open3d_cloud(points)
     diameter = float(np.linalg.norm(cloud.get_max_bound() - cloud.get_min_bound()))
     try:
         _, visible = cloud.hidden_point_removal(camera, radius_factor * diameter)

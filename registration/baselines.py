@@ -43,8 +43,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from linereg.pointcloud import estimate_normals
-from linereg.registration.features import FeatureOptions, global_candidates, open3d_cloud
+from linereg.pointcloud import estimate_normals, open3d_cloud
+from linereg.registration.features import FeatureOptions, global_candidates
 from linereg.registration.methods import METHODS, MethodResult, run_centered
 
 FRICP_VARIANTS = ("ICP", "AA_ICP", "FICP", "RICP", "PPL", "RPPL")

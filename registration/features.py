@@ -17,6 +17,7 @@ from typing import Any
 import numpy as np
 
 from linereg.fps import farthest_point_subset as fps
+from linereg.pointcloud import open3d_cloud
 from linereg.registration.evaluation import point_spacing
 
 
@@ -62,16 +63,6 @@ def feature_voxel(points: np.ndarray, count: int) -> float:
     """Voxel side for features: the median nearest-neighbour distance of ``count`` FPS points of ``points (N, 3)``
     (the spacing of the cloud itself when it has fewer points)."""
     return point_spacing(fps(np.asarray(points, dtype=np.float64), count))
-
-
-def open3d_cloud(points: np.ndarray, normals: np.ndarray | None = None):
-    """An Open3D ``PointCloud`` of ``points (N, 3)`` (and ``normals``)."""
-    import open3d as o3d
-
-    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(points, dtype=np.float64)))
-    if normals is not None:
-        cloud.normals = o3d.utility.Vector3dVector(np.asarray(normals, dtype=np.float64))
-    return cloud
 
 
 def fpfh(points: np.ndarray, voxel: float, options: FeatureOptions) -> tuple[Any, Any]:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import subprocess
@@ -311,6 +312,25 @@ def test_run_benchmark_resumes_from_its_journal(tmp_path):
     assert seen == [len(pairs[1].src_xyz)]  # pair 0 came from the journal
     assert resumed[0] == json.loads(json.dumps(first[0]))
     assert len(resumed) == 2 and len(journal.read_text().splitlines()) == 2
+
+
+def test_a_resumed_record_is_scored_against_the_pairs_ground_truth(tmp_path):
+    pair = _tiny_pair(1)
+    journal = tmp_path / "records.jsonl"
+    (first,) = run_benchmark([pair], build_methods(["icp_point"], {}), progress=False, journal=journal)
+    shifted = pair.gt_transform.copy()
+    shifted[0, 3] += 0.3
+    moved = dataclasses.replace(pair, gt_transform=shifted)
+
+    def not_run(src, tgt, src_normals=None, tgt_normals=None):
+        raise AssertionError("the record should come from the journal")
+
+    (resumed,) = run_benchmark([moved], {"icp_point": not_run}, progress=False, journal=journal)
+    assert resumed["transform"] == first["transform"] and resumed["seconds"] == first["seconds"]
+    assert resumed["gt_transform"] == np.asarray(moved.gt_transform, dtype=np.float64).tolist()
+    expected = np.linalg.norm(np.array(first["transform"])[:3, 3] - shifted[:3, 3])
+    assert resumed["err_t_l2"] == pytest.approx(expected, rel=1e-5)
+    assert abs(resumed["err_t_l2"] - first["err_t_l2"]) > 0.1
 
 
 def test_partial_vs_whole_pairs_from_meshes_and_point_files(tmp_path):

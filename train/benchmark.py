@@ -95,13 +95,28 @@ def object_diameter(points: np.ndarray) -> float:
     return 2.0 * float(np.linalg.norm(points - points.mean(axis=0), axis=1).max())
 
 
-def _confidence(pair: PairSample, transform: Any) -> dict[str, Any]:
-    """``confident``, ``fitness`` (:func:`linereg.registration.api.quality`) and ``bbox_diagonal`` of a result."""
-    found = quality(pair.src_xyz, pair.tgt_xyz, np.asarray(transform, dtype=np.float64))
+def _measure(pair: PairSample, transform: Any) -> dict[str, Any]:
+    """What a record measures from its pair and transform alone.
+
+    The paper's errors (:data:`linereg.metrics.ERROR_KEYS`), ``diameter``, ``confident`` and
+    ``fitness`` (:func:`linereg.registration.api.quality`), ``bbox_diagonal``, ``gt_transform`` and
+    the pair's ``meta``.
+    """
+    transform = np.asarray(transform, dtype=np.float64)
+    errors = registration_errors(
+        torch.as_tensor(transform)[None],
+        torch.as_tensor(pair.gt_transform, dtype=torch.float64)[None],
+        torch.as_tensor(pair.src_xyz, dtype=torch.float64)[None],
+    )
+    found = quality(pair.src_xyz, pair.tgt_xyz, transform)
     return {
+        **{key: float(errors[key][0]) for key in ERROR_KEYS},
+        "diameter": object_diameter(pair.tgt_xyz),
         "confident": bool(found["confident"]),
         "fitness": float(found["fitness"]),
         "bbox_diagonal": diameter(np.asarray(pair.tgt_xyz, dtype=np.float64)),
+        "gt_transform": np.asarray(pair.gt_transform, dtype=np.float64).tolist(),
+        "meta": _jsonable(pair.meta),
     }
 
 
@@ -136,9 +151,10 @@ def run_benchmark(
         methods: display name -> method (see :mod:`linereg.registration.methods`).
         progress: show a tqdm bar.
         journal: a JSON-lines file that receives every record as soon as it is measured;
-            records already in it (same pair and method) are reused, so an interrupted run
-            resumes where it stopped; their ``confident`` flag is measured again (it depends on
-            the pair and the transform only).
+            records already in it (same pair and method) keep their transform, time and
+            ``info``, so an interrupted run resumes where it stopped; everything else is
+            measured again (:func:`_measure`: it depends on the pair and the transform only, so
+            a changed ground truth or flag is scored without running the methods again).
 
     Returns:
         One record per (pair, method), pairs outer: ``pair`` (position in ``pairs``),
@@ -167,7 +183,7 @@ def run_benchmark(
         for name, method in methods.items():
             if (index, name) in done:
                 record = done[(index, name)]
-                record.update(_confidence(pair, record["transform"]))
+                record.update(_measure(pair, record["transform"]))
                 records.append(record)
                 bar.update()
                 continue
@@ -176,22 +192,13 @@ def run_benchmark(
                 result = method(pair.src_xyz, pair.tgt_xyz, pair.src_normals, pair.tgt_normals)
             except Exception as error:
                 raise RuntimeError(f"method {name!r} failed on pair {index} ({pair.meta}): {error}") from error
-            errors = registration_errors(
-                torch.as_tensor(result.transform, dtype=torch.float64)[None],
-                torch.as_tensor(pair.gt_transform, dtype=torch.float64)[None],
-                torch.as_tensor(pair.src_xyz, dtype=torch.float64)[None],
-            )
             records.append(
                 {
                     "pair": index,
                     "method": name,
                     "seconds": float(result.seconds),
-                    **{key: float(errors[key][0]) for key in ERROR_KEYS},
-                    "diameter": object_diameter(pair.tgt_xyz),
-                    **_confidence(pair, result.transform),
+                    **_measure(pair, result.transform),
                     "transform": np.asarray(result.transform, dtype=np.float64).tolist(),
-                    "gt_transform": np.asarray(pair.gt_transform, dtype=np.float64).tolist(),
-                    "meta": _jsonable(pair.meta),
                     "info": _jsonable(result.info),
                 }
             )

@@ -6,10 +6,10 @@
 For the pairs of the ``fragments`` benchmark (same draw), the script compares the tracking pose
 of each pair (the camera poses' ``T_target^-1 T_source``) with the refined ground truth
 (:func:`linereg.datasets.fragments.refine_pose`) on the *whole* fragments: the share of source
-points within 1.5 fusion voxels of a target point (fitness) and their RMS distance, and the
-rotation and translation between the two poses. With ``--results``, it also prints the median
-errors of each method of benchmark runs scored against either ground truth
-(``linereg-benchmark benchmark=fragments benchmark.ground_truth=tracking|refined``).
+points within 1.5 fusion voxels of a target point (fitness) and their RMS distance, the overlap
+(3.75 cm) under each, and the rotation and translation between the two poses. With
+``--results``, it also prints the median errors of each method of benchmark runs scored against
+either ground truth (``linereg-benchmark benchmark=fragments benchmark.ground_truth=...``).
 """
 
 from __future__ import annotations
@@ -30,6 +30,7 @@ from linereg.datasets.fragments import (
     cached_fragments,
     draw_pairs,
     fragment_cache_path,
+    overlap_ratio,
     refined_ground_truths,
 )
 from linereg.paths import shared_data_dir
@@ -69,6 +70,10 @@ def pose_rows(pairs: int, seed: int) -> list[dict]:
                 "correction_cm": 100 * float(np.linalg.norm(truth[:3, 3] - tracking[:3, 3])),
                 "tracking": alignment(fragments.xyz[source], cloud, tracking, distance),
                 "refined": alignment(fragments.xyz[source], cloud, truth, distance),
+                "overlap": [
+                    overlap_ratio(fragments.xyz[source], fragments.xyz[target], pose, max_points=20000)
+                    for pose in (tracking, truth)
+                ],
             }
         )
     return rows
@@ -79,8 +84,8 @@ def pose_table(rows: list[dict]) -> list[str]:
     lines = [
         "| pairs | correction median / max (deg) | correction median / max (cm) "
         "| fitness tracking -> refined (median) | inlier RMS tracking -> refined (median, mm) "
-        "| refined fits more points |",
-        "|---|---|---|---|---|---|",
+        "| refined fits more points | overlap tracking -> refined (min-max) |",
+        "|---|---|---|---|---|---|---|",
     ]
     groups = {label: [row for row in rows if row["bin"] == label] for label in dict.fromkeys(r["bin"] for r in rows)}
     for label, group in {**groups, "all": rows}.items():
@@ -88,12 +93,15 @@ def pose_table(rows: list[dict]) -> list[str]:
         centimetres = np.array([row["correction_cm"] for row in group])
         fitness = np.array([[row["tracking"][0], row["refined"][0]] for row in group])
         rms = 1000 * np.array([[row["tracking"][1], row["refined"][1]] for row in group])
+        overlap = np.array([row["overlap"] for row in group])
         lines.append(
             f"| {label} ({len(group)}) | {np.median(degrees):.2f} / {degrees.max():.2f} "
             f"| {np.median(centimetres):.1f} / {centimetres.max():.1f} "
             f"| {np.median(fitness[:, 0]):.3f} -> {np.median(fitness[:, 1]):.3f} "
             f"| {np.median(rms[:, 0]):.1f} -> {np.median(rms[:, 1]):.1f} "
-            f"| {int((fitness[:, 1] > fitness[:, 0]).sum())} of {len(group)} |"
+            f"| {int((fitness[:, 1] > fitness[:, 0]).sum())} of {len(group)} "
+            f"| {overlap[:, 0].min():.2f}-{overlap[:, 0].max():.2f} "
+            f"-> {overlap[:, 1].min():.2f}-{overlap[:, 1].max():.2f} |"
         )
     return lines
 

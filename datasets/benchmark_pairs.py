@@ -57,6 +57,7 @@ import numpy as np
 import torch
 
 from linereg.checkpoint import find_checkpoint, load_checkpoint
+from linereg.checks import nearest_rotation
 from linereg.datasets import build_dataset
 from linereg.datasets.fragments import DEFAULT_BINS, FragmentSettings, fragment_pairs, overlap_ratio
 from linereg.datasets.protocol import ScanSettings, Shape, ShapeViews, build_protocol, finish_scan_pair
@@ -243,14 +244,6 @@ def dragon_pairs(
     ]
 
 
-def _orthonormal(transform: np.ndarray) -> np.ndarray:
-    """``transform (4, 4)`` with its rotation block replaced by the nearest rotation (SVD)."""
-    fixed = np.array(transform, dtype=np.float64)
-    u, _, vt = np.linalg.svd(fixed[:3, :3])
-    fixed[:3, :3] = u @ np.diag([1.0, 1.0, np.linalg.det(u @ vt)]) @ vt
-    return fixed
-
-
 def _is_scene(folder: Path) -> bool:
     """Whether ``folder`` holds 3DMatch fragments ``cloud_bin_<i>.ply``."""
     return any(folder.glob("cloud_bin_*.ply"))
@@ -328,7 +321,8 @@ def threedmatch_pairs(
     if demo:
         folder = _data_path(demo, "3dmatch/geotransformer_demo/demo")
         source, target = np.load(folder / "src.npy"), np.load(folder / "ref.npy")
-        gt = _orthonormal(np.load(folder / "gt.npy"))
+        gt = np.array(np.load(folder / "gt.npy"), dtype=np.float64)
+        gt[:3, :3] = nearest_rotation(gt[:3, :3])
         found.append(
             finish_scan_pair(
                 source,

@@ -381,6 +381,12 @@ def fragment_cache_path(root: Path, settings: FragmentSettings, cache_dir: str |
     return folder / f"fragments-{settings_key(_cache_description(root, settings))}.npz"
 
 
+def refined_cache_path(root: Path, settings: FragmentSettings, cache_dir: str | Path | None = None) -> Path:
+    """The JSON that caches the refined ground truths (:func:`refined_ground_truths`) beside the fragments."""
+    path = fragment_cache_path(root, settings, cache_dir)
+    return path.with_name(f"{path.stem}-refined.json")
+
+
 def cached_fragments(root: Path, settings: FragmentSettings, cache_dir: str | Path | None = None) -> Fragments:
     """:func:`build_fragments`, read from ``cache_dir`` when built before with the same settings."""
     path = fragment_cache_path(root, settings, cache_dir)
@@ -515,10 +521,10 @@ def fragment_pairs(
     scan = ScanSettings(num_points=num_points, dense_points=dense_points, half_extent=None)
     drawn = draw_pairs(fragments.overlaps, bins, pairs, seed)
     ends = [tuple(int(v) for v in fragments.pairs[candidate]) for candidate, _ in drawn]
-    truths = {end: fragments.ground_truth(*end) for end in ends}
     if ground_truth == "refined":
-        path = fragment_cache_path(root, settings, cache_dir)
-        truths = refined_ground_truths(fragments, ends, settings, path.with_name(f"{path.stem}-refined.json"))
+        truths = refined_ground_truths(fragments, ends, settings, refined_cache_path(root, settings, cache_dir))
+    else:
+        truths = {end: fragments.ground_truth(*end) for end in ends}
     found = []
     for index, ((candidate, bin_number), (target, source)) in enumerate(zip(drawn, ends, strict=True)):
         tracking, truth = fragments.ground_truth(target, source), truths[(target, source)]

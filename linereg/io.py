@@ -486,7 +486,7 @@ def read_transform(path: str | Path) -> np.ndarray:
     except (OSError, EOFError, ValueError, UnicodeDecodeError, zipfile.BadZipFile) as error:
         raise ValueError(f"{path}: cannot read transform: {error}") from error
     try:
-        transform = _homogeneous(stored)
+        transform = homogeneous_matrix(stored)
         check_transform(transform, "transform", rigid_atol=RIGID_TOLERANCE)
     except ValueError as error:
         raise ValueError(f"{path}: {error}") from error
@@ -514,8 +514,13 @@ def _stored_matrix(path: Path) -> np.ndarray:
     return np.array(" ".join(lines).split(), dtype=np.float64)
 
 
-def _homogeneous(stored: np.ndarray) -> np.ndarray:
-    """``stored`` (16 or 12 numbers, or a 4x4 or 3x4 array) as a float64 4x4 matrix."""
+def homogeneous_matrix(stored: np.ndarray) -> np.ndarray:
+    """``stored`` (16 or 12 numbers, or a 4x4 or 3x4 array) as a float64 4x4 matrix, the last row
+    ``[0, 0, 0, 1]`` added to a 3x4 one (no rigidity check).
+
+    Raises:
+        ValueError: not real numbers, or neither 16 / 12 numbers nor a 4x4 / 3x4 array.
+    """
     if not (np.issubdtype(stored.dtype, np.floating) or np.issubdtype(stored.dtype, np.integer)):
         raise ValueError(f"expected real numbers, got dtype {stored.dtype}")
     if stored.ndim == 1:

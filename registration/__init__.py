@@ -13,7 +13,7 @@ plane-to-plane steps (:mod:`~linereg.registration.planes`) and their settings
 first needed (a name not yet registered, or a listing), so that importing this package does not
 import torch. :func:`register` runs any of them, or a trained network, on arrays, tensors,
 Open3D clouds or files, applies an initial guess (:func:`run_with_init`) and scores every result
-alike (:func:`~linereg.registration.evaluation.evaluate_registration`).
+alike (:func:`~linereg.registration.evaluation.assess_registration`).
 """
 
 from typing import Any

@@ -12,7 +12,7 @@ overlapping source points at about that distance from the target; a wrong one sc
 the whole inlier range. The pose is ``confident`` when at least :data:`MIN_FITNESS` of the source
 points lie within :data:`INLIER_DISTANCES` sampling distances and their RMS distance is at most
 :data:`MAX_INLIER_RMSE` sampling distances. The thresholds were chosen on the candidates and
-results of pairs drawn with seed 7 (``scripts/studies/confidence.py``); the benchmarks report seed 0.
+results of pairs drawn with seed 7 (``scripts/studies/check_confidence.py``); the benchmarks report seed 0.
 """
 
 from __future__ import annotations
@@ -72,7 +72,12 @@ def evaluate_registration(
     if transformation is not None:
         moved = moved @ transformation[:3, :3].T + transformation[:3, 3]
     distances, _ = NearestNeighbors(np.asarray(target, dtype=np.float64)).query(moved)
-    inliers = distances <= max_correspondence_distance
+    return _inlier_quality(distances, max_correspondence_distance)
+
+
+def _inlier_quality(distances: np.ndarray, threshold: float) -> RegistrationQuality:
+    """:class:`RegistrationQuality` of nearest-target ``distances (N,)`` with inliers within ``threshold``."""
+    inliers = distances <= threshold
     rmse = float(np.sqrt(np.square(distances[inliers]).mean())) if inliers.any() else 0.0
     return RegistrationQuality(float(inliers.mean()), rmse, int(inliers.sum()))
 
@@ -96,15 +101,6 @@ def sampling_distance(points: np.ndarray, seed: int = 0) -> float:
     distances, _ = NearestNeighbors(second).query(first)
     clipped = np.minimum(distances, 5.0 * np.median(distances))
     return float(np.sqrt(np.mean(np.square(clipped))) / np.sqrt(2.0))
-
-
-def is_confident(distances: np.ndarray, spacing: float) -> bool:
-    """The test of the module docstring on the nearest-target ``distances (N,)`` of the moved
-    source points and the target's :func:`sampling_distance` ``spacing``."""
-    inliers = distances <= INLIER_DISTANCES * spacing
-    if inliers.mean() < MIN_FITNESS:
-        return False
-    return float(np.sqrt(np.square(distances[inliers]).mean())) <= MAX_INLIER_RMSE * spacing
 
 
 class Assessment(NamedTuple):
@@ -143,14 +139,9 @@ def assess_registration(
     spacing = sampling_distance(target)
     moved = source if transformation is None else source @ transformation[:3, :3].T + transformation[:3, 3]
     distances, _ = NearestNeighbors(target).query(moved)
-
-    def scored(threshold: float) -> tuple[float, float]:
-        inliers = distances <= threshold
-        rmse = float(np.sqrt(np.square(distances[inliers]).mean())) if inliers.any() else 0.0
-        return float(inliers.mean()), rmse
-
-    test_fitness, test_rmse = scored(INLIER_DISTANCES * spacing)
-    confident = is_confident(distances, spacing)
-    threshold = fitness_threshold or INLIER_DISTANCES * spacing
-    fitness, rmse = scored(threshold) if fitness_threshold else (test_fitness, test_rmse)
-    return Assessment(fitness, rmse, threshold, spacing, bool(confident))
+    test = _inlier_quality(distances, INLIER_DISTANCES * spacing)
+    confident = test.fitness >= MIN_FITNESS and test.inlier_rmse <= MAX_INLIER_RMSE * spacing
+    if fitness_threshold is None:
+        return Assessment(test.fitness, test.inlier_rmse, INLIER_DISTANCES * spacing, spacing, confident)
+    reported = _inlier_quality(distances, fitness_threshold)
+    return Assessment(reported.fitness, reported.inlier_rmse, fitness_threshold, spacing, confident)

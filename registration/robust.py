@@ -75,6 +75,8 @@ __all__ = ["RobustOptions", "RobustRegistration", "degeneracy", "doubt"]
 
 PROGRESS_AFTER = 1.0
 """Seconds into a registration after which ``progress=True`` prints each stage as it starts."""
+ROUND_NAMES = {2: "Adam on CD-W", 3: "pose search"}
+"""What rounds 2 and 3 run, for the progress lines."""
 
 
 def degeneracy(points: np.ndarray, name: str) -> str | None:
@@ -279,9 +281,9 @@ class RobustRegistration:
         rounds = 1
         while doubtful and rounds < select.rounds:
             rounds += 1
-            self._stage(f"doubtful: round {rounds} ({'Adam on CD-W' if rounds == 2 else 'pose search'})")
+            self._stage(f"doubtful: round {rounds} ({ROUND_NAMES[rounds]})")
             more, more_costs, more_starts = self._round(rounds, pair)
-            poses = tuple(np.concatenate([a, b]) for a, b in zip(poses, more, strict=True))
+            poses = _joined(poses, more)
             costs, starts = np.concatenate([costs, more_costs]), starts + more_starts
             doubtful, confidence, fitness = doubt(select, poses, costs, pair.src, pair.tgt_index, pair.inlier_distance)
         best, selection = int(costs.argmin()), "fixed"
@@ -320,7 +322,7 @@ class RobustRegistration:
         doubtful, margin = _dense_doubt(select, poses, costs, pair.src, dense)
         while doubtful and rounds < select.rounds:
             rounds += 1
-            self._stage(f"still doubtful: round {rounds} ({'Adam on CD-W' if rounds == 2 else 'pose search'})")
+            self._stage(f"still doubtful: round {rounds} ({ROUND_NAMES[rounds]})")
             more, _, more_starts = self._round(rounds, pair)
             poses, costs = self._judge(_joined(poses, more), pair, dense)
             starts += more_starts
@@ -436,10 +438,8 @@ def _dense_doubt(
     rivals = rotation_gap_deg(poses[0], poses[0][best]) > select.distinct_deg
     if not rivals.any():
         return not confident, 1.0
-    rival = float(scores[rivals].max())
-    return not confident or rival * select.doubt_ratio > float(scores[best]), 1.0 - rival / max(
-        float(scores[best]), 1e-12
-    )
+    rival, best_score = float(scores[rivals].max()), float(scores[best])
+    return not confident or rival * select.doubt_ratio > best_score, 1.0 - rival / max(best_score, 1e-12)
 
 
 METHODS.register("robust")(RobustRegistration)

@@ -122,19 +122,13 @@ def measure(pairs, folder: Path, commands: int, compare: dict | None) -> dict[st
     return row
 
 
-# Redkitchen's ground truth: cloud_bin_4 points into cloud_bin_0.
-_REDKITCHEN_GT = [
-    [0.97995721, -0.08093595, 0.18187661, -0.08650046],
-    [0.09801947, 0.99135145, -0.08698794, -0.45825166],
-    [-0.17327237, 0.1030775, 0.97944105, 0.5075809],
-    [0.0, 0.0, 0.0, 1.0],
-]
-# name: (source, target, ground truth: a file or a matrix), relative to the shared data.
+# name: (source, target, ground truth), relative to the shared data; the ground truth is a
+# transform file or the block (target i, source j) of a 3DMatch gt.log.
 SCAN_PAIRS = {
     "redkitchen 4->0": (
         "3dmatch/redkitchen_0_4/cloud_bin_4.ply",
         "3dmatch/redkitchen_0_4/cloud_bin_0.ply",
-        _REDKITCHEN_GT,
+        ("3dmatch/geotransformer_demo/benchmarks/3DMatch/7-scenes-redkitchen/gt.log", 0, 4),
     ),
     "geotransformer demo": (
         "3dmatch/geotransformer_demo/demo/src.npy",
@@ -167,21 +161,34 @@ def pose_errors(transform, truth: np.ndarray) -> tuple[float, float]:
     return rotation, float(np.linalg.norm(transform[:3, 3] - truth[:3, 3]))
 
 
+def _ground_truth(data: Path, gt: str | tuple[str, int, int]) -> np.ndarray:
+    """The exactly rigid ground truth of a :data:`SCAN_PAIRS` entry (stored ones are float32)."""
+    from linereg.datasets.formats import read_log
+    from linereg.io import read_transform
+
+    if isinstance(gt, str):
+        truth = read_transform(data / gt)
+    else:
+        log, target, source = gt
+        truth = next(entry.transform for entry in read_log(data / log) if (entry.i, entry.j) == (target, source))
+    truth = np.array(truth, dtype=np.float64)
+    truth[:3, :3] = nearest_rotation(truth[:3, :3])
+    return truth
+
+
 def measure_scans(data: Path, folder: Path, repeats: int) -> dict[str, dict]:
     """One row per scan pair of :data:`SCAN_PAIRS` found under ``data``: command and reference times,
     their ratio, and both methods' errors; absent pairs are skipped with a note on stderr."""
-    from linereg.io import read_transform
-
     rows = {}
     for name, (source, target, gt) in SCAN_PAIRS.items():
-        missing = [path for path in (source, target, gt) if isinstance(path, str) and not (data / path).is_file()]
+        gt_file = gt if isinstance(gt, str) else gt[0]
+        missing = [path for path in (source, target, gt_file) if not (data / path).is_file()]
         if missing:
             print(f"skipping {name}: {', '.join(str(data / path) for path in missing)} not found", file=sys.stderr)
             continue
         pair = folder / name.replace(" ", "_").replace(">", "")
         pair.mkdir()
-        truth = np.array(read_transform(data / gt) if isinstance(gt, str) else gt, dtype=np.float64)
-        truth[:3, :3] = nearest_rotation(truth[:3, :3])  # ground truths stored in float32
+        truth = _ground_truth(data, gt)
         arguments = [f"source={data / source}", f"target={data / target}"]
         command, report = _register_runs(arguments, pair / "default", repeats)
         reference, ref_report = _register_runs([*arguments, "method=fpfh_ransac"], pair / "fpfh_ransac", repeats)

@@ -105,6 +105,19 @@ def test_settings_are_checked():
         FragmentSettings(frame_range=(10, 10))
 
 
+def _small_pairs(shared_data, cache_dir, *, seed: int, ground_truth: str):
+    """Six pairs of the small fragments, read from ``cache_dir``."""
+    return fragment_pairs(
+        shared_data / SEQUENCE,
+        pairs=6,
+        seed=seed,
+        bins=SMALL_BINS,
+        cache_dir=cache_dir,
+        settings=FragmentSettings(**{**SMALL, "frame_range": tuple(SMALL["frame_range"])}),
+        ground_truth=ground_truth,
+    )
+
+
 @pytest.fixture(scope="module")
 def small_pairs(shared_data, tmp_path_factory):
     """Six pairs of the small fragments (built once into a temporary cache)."""
@@ -149,15 +162,7 @@ def test_fragments_are_read_back_from_the_cache(small_pairs, shared_data, monkey
     again = PAIR_SOURCES.build(config, seed=0)
     assert [p.meta for p in again] == [p.meta for p in pairs]
     np.testing.assert_array_equal(again[0].src_xyz, pairs[0].src_xyz)
-    other = fragment_pairs(
-        shared_data / SEQUENCE,
-        pairs=6,
-        seed=1,
-        bins=SMALL_BINS,
-        cache_dir=config["cache_dir"],
-        settings=FragmentSettings(**{**SMALL, "frame_range": tuple(SMALL["frame_range"])}),
-        ground_truth="tracking",
-    )
+    other = _small_pairs(shared_data, config["cache_dir"], seed=1, ground_truth="tracking")
     assert [p.meta["overlap_bin"] for p in other] == [p.meta["overlap_bin"] for p in pairs]
     assert [p.meta["src_fragment"] for p in other] != [p.meta["src_fragment"] for p in pairs]
 
@@ -165,15 +170,7 @@ def test_fragments_are_read_back_from_the_cache(small_pairs, shared_data, monkey
 @pytest.mark.shared_data
 def test_the_refined_ground_truth_aligns_better_than_the_tracking_pose(small_pairs, shared_data):
     pairs, config = small_pairs
-    tracking = fragment_pairs(
-        shared_data / SEQUENCE,
-        pairs=6,
-        seed=0,
-        bins=SMALL_BINS,
-        cache_dir=config["cache_dir"],
-        settings=FragmentSettings(**{**SMALL, "frame_range": tuple(SMALL["frame_range"])}),
-        ground_truth="tracking",
-    )
+    tracking = _small_pairs(shared_data, config["cache_dir"], seed=0, ground_truth="tracking")
     voxel = SMALL["voxel_size"]
     for refined, tracked in zip(pairs, tracking, strict=True):
         assert tracked.meta["ground_truth"] == "tracking" and tracked.meta["gt_correction_m"] == 0.0

@@ -46,6 +46,7 @@ from tqdm.auto import tqdm
 
 import linereg.registration  # noqa: F401  (importing registers the baselines and solvers)
 from linereg.datasets.benchmark_pairs import labelled_pairs, select_pairs
+from linereg.datasets.fragments import DEFAULT_BINS, bin_index, bin_label
 from linereg.metrics import (
     ERROR_KEYS,
     SUCCESS_THRESHOLDS_DEG,
@@ -74,13 +75,12 @@ ALPHA_STEPS = 201
 RECALL_THRESHOLDS = ((15.0, 0.3), (5.0, 0.1))
 """Registration recall thresholds ``(RRE degrees, RTE pair units)``: 3DMatch's, then a tighter one."""
 OVERLAP_BINS = (
-    ("< 0.2", -np.inf, 0.2, False),
-    ("[0.2, 0.3)", 0.2, 0.3, False),
-    ("[0.3, 0.5)", 0.3, 0.5, False),
-    ("[0.5, 0.8]", 0.5, 0.8, True),
-    ("> 0.8", 0.8, np.inf, False),
+    f"< {DEFAULT_BINS[0][0]:g}",
+    *(bin_label(low, high, index == len(DEFAULT_BINS) - 1) for index, (low, high) in enumerate(DEFAULT_BINS)),
+    f"> {DEFAULT_BINS[-1][1]:g}",
 )
-"""``(label, low, high, high included)`` overlap bins of the per-bin recall table."""
+"""Labels of the per-bin recall tables: the ``fragments`` source's overlap bins
+(:data:`linereg.datasets.fragments.DEFAULT_BINS`) and the overlaps below and above them."""
 CORRECT_ROTATION_DEG = 2.0
 CORRECT_TRANSLATION_FRACTION = 0.02
 """A registration is *correct* (scoring the confidence flag) with RRE <= 2 deg and RTE <= 2 % of
@@ -275,11 +275,13 @@ def identity_records(records: Sequence[Mapping[str, Any]]) -> list[dict[str, Any
 
 
 def overlap_bin(overlap: float) -> str:
-    """Label of the :data:`OVERLAP_BINS` bin holding ``overlap``."""
-    for label, low, high, closed in OVERLAP_BINS:
-        if low <= overlap < high or (closed and overlap == high):
-            return label
-    raise ValueError(f"overlap {overlap} is in no bin")
+    """The label of :data:`OVERLAP_BINS` holding ``overlap``."""
+    if np.isnan(overlap):
+        raise ValueError("overlap NaN is in no bin")
+    index = bin_index(overlap, DEFAULT_BINS)
+    if index is None:
+        return OVERLAP_BINS[0] if overlap < DEFAULT_BINS[0][0] else OVERLAP_BINS[-1]
+    return OVERLAP_BINS[index + 1]
 
 
 def recall_table(summary: Mapping[str, Mapping[str, float]], units: str) -> list[str]:
@@ -321,7 +323,7 @@ def recall_sections(records: Sequence[Mapping[str, Any]], units: str) -> list[st
     overlaps = [record.get("meta", {}).get("overlap") for record in records]
     if any(overlap is None for overlap in overlaps):
         return lines
-    by_bin: dict[str, list[Mapping[str, Any]]] = {label: [] for label, *_ in OVERLAP_BINS}
+    by_bin: dict[str, list[Mapping[str, Any]]] = {label: [] for label in OVERLAP_BINS}
     for record, overlap in zip(records, overlaps, strict=True):
         by_bin[overlap_bin(overlap)].append(record)
     for label, members in by_bin.items():

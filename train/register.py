@@ -56,6 +56,7 @@ def parse_init(value: Any) -> np.ndarray | None:
         RegisterError: not a file, not 12/16 numbers, or not rigid; the message names ``init``.
     """
     from linereg.checks import as_rigid_transform
+    from linereg.io import homogeneous_matrix
 
     if value is None:
         return None
@@ -70,12 +71,8 @@ def parse_init(value: Any) -> np.ndarray | None:
         raise RegisterError(
             f"init={value!r}: not a file and not a list of numbers (give a 4x4 transform file or 16 numbers)"
         ) from error
-    if values.size == 12:
-        values = np.concatenate([values, [0.0, 0.0, 0.0, 1.0]])
-    if values.size != 16:
-        raise RegisterError(f"init={value!r}: expected 16 (4x4) or 12 (3x4) numbers, got {values.size}")
     try:
-        return as_rigid_transform(values.reshape(4, 4), "init")
+        return as_rigid_transform(homogeneous_matrix(values), "init")
     except ValueError as error:
         raise RegisterError(f"init={value!r}: {error}") from error
 
@@ -256,7 +253,6 @@ def _report(cfg: DictConfig, src, tgt, result, notes: list[str], gt: np.ndarray 
             torch.from_numpy(transform)[None], torch.from_numpy(gt)[None], torch.from_numpy(src.xyz).double()[None]
         )
         report["metrics"] = {key: float(value[0]) for key, value in errors.items()}
-        report["metrics"]["translation_error"] = float(np.linalg.norm(transform[:3, 3] - gt[:3, 3]))
     return report
 
 
@@ -303,7 +299,7 @@ def _register_app(cfg: DictConfig) -> None:
     if "metrics" in report:
         m = report["metrics"]
         print(
-            f"Err_R {m['err_r_deg']:.3f} deg | translation error {m['translation_error']:.4g} "
+            f"Err_R {m['err_r_deg']:.3f} deg | translation error {m['err_t_l2']:.4g} "
             f"| Err_pw l1 {m['err_pw_l1']:.4g} l2 {m['err_pw_l2']:.4g}"
         )
     print(f"outputs in {out_dir}")

@@ -26,11 +26,11 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 import linereg.registration.robust as robust
 from linereg.checks import nearest_rotation
 from linereg.datasets.benchmark_pairs import select_pairs
-from linereg.fps import farthest_point_subset as fps
-from linereg.knn import NearestNeighbors
 from linereg.registration import evaluation
+from linereg.registration.baselines import diameter
 from linereg.registration.methods import METHODS, translation
 from linereg.registration.poses import as_matrices, rotation_gap_deg
+from linereg.train.benchmark import CORRECT_ROTATION_DEG, CORRECT_TRANSLATION_FRACTION
 
 SOURCES = {
     "airplane": {"name": "airplane"},
@@ -58,13 +58,8 @@ class CandidateRecorder(robust.RobustRegistration):
 
 def measured(source: np.ndarray, target: np.ndarray, transform: np.ndarray) -> tuple[float, float]:
     """``(fitness within 3 sampling distances, inlier RMS / sampling distance)`` as the test measures them."""
-    source = fps(source, evaluation.ASSESS_SOURCE_POINTS)
-    target = fps(target, evaluation.ASSESS_TARGET_POINTS)
-    spacing = evaluation.sampling_distance(target)
-    distances, _ = NearestNeighbors(target).query(source @ transform[:3, :3].T + transform[:3, 3])
-    inliers = distances <= evaluation.INLIER_DISTANCES * spacing
-    rmse = float(np.sqrt(np.square(distances[inliers]).mean())) / spacing if inliers.any() else np.inf
-    return float(inliers.mean()), rmse
+    found = evaluation.assess_registration(source, target, transform)
+    return found.fitness, found.inlier_rmse / found.sampling_distance if found.fitness > 0 else np.inf
 
 
 def source_pairs(name: str, count: int):
@@ -96,12 +91,12 @@ def collect(count: int) -> list[dict]:
             truth = pair.gt_transform.astype(np.float64)
             truth[:3, :3] = nearest_rotation(truth[:3, :3])  # ground truths stored in float32
             tgt = pair.tgt_xyz.astype(np.float64)
-            diagonal = float(np.linalg.norm(tgt.max(axis=0) - tgt.min(axis=0)))
+            diagonal = diameter(tgt)
             for kind, transform in poses_of(name, pair):
                 err_r = float(rotation_gap_deg(transform[None, :3, :3], truth[:3, :3])[0])
                 err_t = float(np.linalg.norm(transform[:3, 3] - truth[:3, 3]))
                 fitness, rmse = measured(pair.src_xyz.astype(np.float64), tgt, transform)
-                right = err_r <= 2.0 and err_t <= 0.02 * diagonal
+                right = err_r <= CORRECT_ROTATION_DEG and err_t <= CORRECT_TRANSLATION_FRACTION * diagonal
                 rows.append(
                     {
                         "source": name,

@@ -29,21 +29,13 @@ from linereg.datasets.fragments import (
     bin_label,
     cached_fragments,
     draw_pairs,
-    fragment_cache_path,
     overlap_ratio,
+    refined_cache_path,
     refined_ground_truths,
 )
 from linereg.paths import shared_data_dir
-from linereg.pointcloud import open3d_cloud
+from linereg.registration.evaluation import evaluate_registration
 from linereg.registration.poses import rotation_gap_deg
-
-
-def alignment(source: np.ndarray, target, transform: np.ndarray, distance: float) -> tuple[float, float]:
-    """``(fitness, inlier RMS)`` of ``source (N, 3)`` moved by ``transform`` against an Open3D ``target``."""
-    import open3d as o3d
-
-    found = o3d.pipelines.registration.evaluate_registration(open3d_cloud(source), target, distance, transform)
-    return float(found.fitness), float(found.inlier_rmse)
 
 
 def pose_rows(pairs: int, seed: int) -> list[dict]:
@@ -56,23 +48,21 @@ def pose_rows(pairs: int, seed: int) -> list[dict]:
     fragments = cached_fragments(root, settings)
     drawn = draw_pairs(fragments.overlaps, DEFAULT_BINS, pairs, seed)
     ends = [tuple(int(v) for v in fragments.pairs[candidate]) for candidate, _ in drawn]
-    path = fragment_cache_path(root, settings)
-    refined = refined_ground_truths(fragments, ends, settings, path.with_name(f"{path.stem}-refined.json"))
+    refined = refined_ground_truths(fragments, ends, settings, refined_cache_path(root, settings))
     rows = []
     for (_, bin_number), (target, source) in zip(drawn, ends, strict=True):
         tracking, truth = fragments.ground_truth(target, source), refined[(target, source)]
-        cloud = open3d_cloud(fragments.xyz[target])
         distance = 1.5 * settings.voxel_size
+        source_points, target_points = fragments.xyz[source], fragments.xyz[target]
         rows.append(
             {
                 "bin": bin_label(*DEFAULT_BINS[bin_number], bin_number == len(DEFAULT_BINS) - 1),
                 "correction_deg": float(rotation_gap_deg(truth[None, :3, :3], tracking[:3, :3])[0]),
                 "correction_cm": 100 * float(np.linalg.norm(truth[:3, 3] - tracking[:3, 3])),
-                "tracking": alignment(fragments.xyz[source], cloud, tracking, distance),
-                "refined": alignment(fragments.xyz[source], cloud, truth, distance),
+                "tracking": evaluate_registration(source_points, target_points, distance, tracking)[:2],
+                "refined": evaluate_registration(source_points, target_points, distance, truth)[:2],
                 "overlap": [
-                    overlap_ratio(fragments.xyz[source], fragments.xyz[target], pose, max_points=20000)
-                    for pose in (tracking, truth)
+                    overlap_ratio(source_points, target_points, pose, max_points=20000) for pose in (tracking, truth)
                 ],
             }
         )

@@ -25,7 +25,7 @@ import roma
 import torch
 from PIL import Image
 
-from linereg.checks import check_transform
+from linereg.checks import check_transform, nearest_rotation
 
 RIGID_ATOL = 1e-3
 
@@ -86,7 +86,8 @@ def read_log(path: str | Path, *, rigid: bool = True) -> list[LogEntry]:
 
     Args:
         path: the ``.log`` file.
-        rigid: require every matrix to be a rigid transform (tolerance ``1e-3``).
+        rigid: require every matrix to be a rigid transform (tolerance ``1e-3``) and return it
+            exactly rigid (its nearest rotation; published logs are rigid to about 1e-4 only).
 
     Returns:
         The blocks in file order.
@@ -119,6 +120,8 @@ def read_log(path: str | Path, *, rigid: bool = True) -> list[LogEntry]:
                 check_transform(matrix, f"{path}: block at line {line_no}", rigid_atol=RIGID_ATOL)
             except ValueError as error:
                 raise ValueError(str(error)) from None
+            matrix[:3, :3] = nearest_rotation(matrix[:3, :3])
+            matrix[3] = (0.0, 0.0, 0.0, 1.0)
         i, j, count = (int(f) for f in fields)
         entries.append(LogEntry(i, j, count, matrix))
     return entries

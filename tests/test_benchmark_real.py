@@ -167,6 +167,9 @@ def test_registration_recall_needs_both_thresholds():
     assert summary["a"][recall_key(5.0, 0.1)] == 0.25
     assert summary["b"][recall_key(15.0, 0.3)] == 0.0
     assert summary["a"]["err_r_deg_median"] == pytest.approx(12.45)
+    assert summary["a"]["err_r_deg_registered_mean"] == pytest.approx((1.0 + 10.0 + 14.9) / 3)
+    assert summary["a"]["err_t_l2_registered_mean"] == pytest.approx((0.05 + 0.2 + 0.3) / 3)
+    assert np.isnan(summary["b"]["err_t_l2_registered_mean"])
 
 
 def test_the_identity_baseline_is_the_ground_truth_motion():

@@ -317,6 +317,21 @@ def test_threedmatch_overlap_filter(threedmatch_scene):
     assert len(low) == 1 and overlaps[(low.entries[0].i, low.entries[0].j)] < middle
 
 
+def test_read_log_returns_exactly_rigid_poses_of_a_published_precision(tmp_path):
+    """Published logs print 9 digits of a rotation rigid to about 1e-4; read_log repairs that much."""
+    rotation = Rotation.from_euler("xyz", [10.0, -20.0, 30.0], degrees=True).as_matrix()
+    logged = np.eye(4)
+    logged[:3, :3] = rotation * (1.0 + 5e-5)
+    logged[:3, 3] = [0.1, -0.2, 0.3]
+    (tmp_path / "gt.log").write_text(_log_block(0, 1, 2, logged))
+
+    (entry,) = read_log(tmp_path / "gt.log")
+
+    assert np.allclose(entry.transform[:3, :3].T @ entry.transform[:3, :3], np.eye(3), atol=1e-12)
+    assert np.allclose(entry.transform[:3, :3], rotation, atol=1e-9)
+    assert np.array_equal(entry.transform[:3, 3], logged[:3, 3]) and np.array_equal(entry.transform[3], [0, 0, 0, 1])
+
+
 def test_threedmatch_errors(threedmatch_scene, tmp_path):
     with pytest.raises(FileNotFoundError, match=r"no gt\.log"):
         build_dataset({"name": "threedmatch", "root": str(tmp_path)})

@@ -111,3 +111,70 @@ def test_check_iterations_pads_a_solver_that_stopped_early():
     padded = _repeat_last(rows, 4)
     assert padded.shape == (4, 2) and torch.equal(padded[:2], rows) and torch.equal(padded[2:], rows[1:].expand(2, 2))
     assert torch.equal(_repeat_last(rows, 2), rows)
+
+
+def _fragment_record(pair: int, method: str, rotation: float, translation: float) -> dict:
+    meta = {"tgt_fragment": pair, "src_fragment": pair + 5, "overlap_bin": "[0.3, 0.5)", "overlap": 0.4}
+    return {"pair": pair, "method": method, "err_r_deg": rotation, "err_t_l2": translation, "meta": meta}
+
+
+def test_failed_fragment_pairs_are_those_one_method_misses():
+    from scripts.studies.check_failed_fragment_pairs import failed_pairs
+
+    records = [_fragment_record(0, "ours", 1.0, 0.02), _fragment_record(0, "fpfh_ransac", 1.0, 0.02)]
+    records += [_fragment_record(1, "ours", 1.0, 0.02), _fragment_record(1, "fpfh_ransac", 1.0, 0.11)]
+    records += [_fragment_record(2, "ours", 6.0, 0.02), _fragment_record(2, "fricp", 90.0, 2.0)]
+
+    failed = failed_pairs(records, ["ours", "fpfh_ransac"])
+
+    assert list(failed) == [1, 2] and set(failed[1]) == {"ours", "fpfh_ransac"}
+
+
+def test_the_chain_goes_through_the_fragment_overlapping_both_ends_most():
+    import numpy as np
+
+    from linereg.datasets.fragments import Fragments
+    from scripts.studies.check_failed_fragment_pairs import chain_fragment
+
+    pairs = np.array([[0, 1], [0, 2], [0, 3], [1, 3], [2, 3]])
+    fragments = Fragments(
+        xyz=[np.zeros((1, 3))] * 4,
+        normals=[np.zeros((1, 3))] * 4,
+        frames=np.zeros((4, 2), dtype=np.int64),
+        poses=np.tile(np.eye(4), (4, 1, 1)),
+        pairs=pairs,
+        overlaps=np.array([0.9, 0.5, 0.3, 0.2, 0.6]),
+    )
+
+    assert chain_fragment(fragments, 0, 3) == (2, 0.5, 0.6)  # fragment 1 overlaps 3 by 0.2 only
+
+
+def test_a_failure_is_search_or_ambiguity_by_the_fine_scores():
+    from scripts.studies.check_failed_fragment_pairs import failures, verdict_table
+
+    def row(pair: int, scores: list[float]) -> dict:
+        truth = [0.30, 0.70, 0.60, 0.50]
+        return {
+            "pair": pair,
+            "bin": "[0.3, 0.5)",
+            "errors": {"ours": (20.0, 80.0)},
+            "scores": {"truth": truth, "ours": scores},
+        }
+
+    rows = [row(0, [0.20, 0.80, 0.50, 0.40]), row(1, [0.35, 0.65, 0.70, 0.60]), row(2, [0.35, 0.75, 0.5, 0.4])]
+
+    assert [verdict for _, _, verdict in failures(rows, ["ours"])] == ["search", "ambiguity", "mixed"]
+    assert "| ours | [0.3, 0.5) | 3 | 1 | 1 | 1 |" in verdict_table(rows, ["ours"])
+
+
+def test_the_demo_pair_is_redkitchen_fragment_6_onto_fragment_0(shared_data):
+    import numpy as np
+
+    from scripts.studies.check_3dmatch_ground_truth import load, pose_gap
+
+    data = load(shared_data)
+
+    published = data["published"]
+    angle, centimetres = pose_gap(published[(0, 4)] @ published[(4, 6)], published[(0, 6)])
+    assert angle < 0.01 and centimetres < 0.01  # one trajectory: the published poses chain exactly
+    assert np.allclose(pose_gap(published[(0, 6)], published[(0, 6)]), 0.0, atol=1e-5)

@@ -170,7 +170,8 @@ def test_a_failure_is_search_or_ambiguity_by_the_fine_scores():
 def test_the_demo_pair_is_redkitchen_fragment_6_onto_fragment_0(shared_data):
     import numpy as np
 
-    from scripts.studies.check_3dmatch_ground_truth import load, pose_gap
+    from scripts.studies.check_3dmatch_ground_truth import load
+    from scripts.studies.check_fragment_ground_truth import pose_gap
 
     data = load(shared_data)
 

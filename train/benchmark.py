@@ -239,11 +239,12 @@ def summarize_records(records: Sequence[Mapping[str, Any]]) -> dict[str, dict[st
     for method, rows in _by_method(records).items():
         columns = {key: np.array([row[key] for row in rows], dtype=np.float64) for key in (*ERROR_KEYS, "seconds")}
         summary[method] = aggregate_errors(columns, success_deg=SUCCESS_THRESHOLDS_DEG)
-        for max_deg, max_translation in RECALL_THRESHOLDS:
-            hits = (columns["err_r_deg"] <= max_deg) & (columns["err_t_l2"] <= max_translation)
-            summary[method][recall_key(max_deg, max_translation)] = float(np.mean(hits))
-        max_deg, max_translation = RECALL_THRESHOLDS[0]
-        registered = (columns["err_r_deg"] <= max_deg) & (columns["err_t_l2"] <= max_translation)
+        hits = {
+            thresholds: (columns["err_r_deg"] <= thresholds[0]) & (columns["err_t_l2"] <= thresholds[1])
+            for thresholds in RECALL_THRESHOLDS
+        }
+        summary[method].update({recall_key(*thresholds): float(np.mean(hit)) for thresholds, hit in hits.items()})
+        registered = hits[RECALL_THRESHOLDS[0]]
         for key in ("err_r_deg", "err_t_l2"):
             values = columns[key][registered]
             summary[method][f"{key}_registered_mean"] = float(values.mean()) if values.size else float("nan")

@@ -9,7 +9,8 @@ ground truth) on which one of ``--methods`` ends outside 5 deg / 10 cm, on the *
 * **the ground truth against a chain.** The pair's refined pose is compared with the composition
   of two refined poses through a third fragment ``k`` (``T_tk T_ks``, each link
   :func:`~linereg.datasets.fragments.refine_pose` from its tracking pose), ``k`` sharing no frame
-  with either end and chosen to maximise the smaller of the two links' overlaps;
+  with either end and chosen to maximise the smaller of the two links' overlaps (the links are
+  cached beside the benchmark's refined ground truth);
 * **which pose the fragments prefer.** The share of source points within 1.5 cm of the target
   (fitness) and the fixed-scale Welsch cost ``mean 1 - exp(-d^2 / 2 nu^2)`` of their nearest
   distances at several scales ``nu``, at the ground truth and at each method's pose. A failed
@@ -32,15 +33,14 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 from linereg.datasets.fragments import (
     FragmentSettings,
     cached_fragments,
-    refine_pose,
     refined_cache_path,
     refined_ground_truths,
 )
 from linereg.knn import NearestNeighbors
 from linereg.paths import shared_data_dir
-from linereg.registration.poses import rotation_gap_deg
 from linereg.registration.welsch import welsch_cost
 from linereg.train.benchmark import RECALL_THRESHOLDS
+from scripts.studies.check_fragment_ground_truth import pose_gap
 
 FITNESS_DISTANCE = 0.015
 """Inlier distance of the fitness (metres): 1.5 fusion voxels, as the refinement's last round."""
@@ -84,23 +84,6 @@ def chain_fragment(fragments, target: int, source: int) -> tuple[int, float, flo
     return best
 
 
-def refined_link(fragments, settings: FragmentSettings, target: int, source: int) -> np.ndarray:
-    """:func:`refine_pose` of fragment ``source`` onto fragment ``target`` from the tracking pose."""
-    return refine_pose(
-        fragments.xyz[source],
-        fragments.xyz[target],
-        fragments.normals[target],
-        fragments.ground_truth(target, source),
-        settings.voxel_size,
-    )
-
-
-def pose_gap(first: np.ndarray, second: np.ndarray) -> tuple[float, float]:
-    """Rotation angle (deg) and translation distance (cm) between two ``(4, 4)`` poses."""
-    angle = float(rotation_gap_deg(first[None, :3, :3], second[:3, :3])[0])
-    return angle, 100.0 * float(np.linalg.norm(first[:3, 3] - second[:3, 3]))
-
-
 def fit_scores(source: np.ndarray, index: NearestNeighbors, pose: np.ndarray) -> list[float]:
     """Fitness at :data:`FITNESS_DISTANCE`, then the Welsch cost at each of :data:`WELSCH_SCALES`."""
     distances, _ = index.query(source @ pose[:3, :3].T + pose[:3, 3])
@@ -125,13 +108,15 @@ def study_rows(results: Path, methods: list[str]) -> list[dict]:
         pair: (found[methods[0]]["meta"]["tgt_fragment"], found[methods[0]]["meta"]["src_fragment"])
         for pair, found in failed.items()
     }
-    truths = refined_ground_truths(fragments, list(ends.values()), settings, refined_cache_path(root, settings))
+    cache = refined_cache_path(root, settings)
+    truths = refined_ground_truths(fragments, list(ends.values()), settings, cache)
     rows = []
     for pair, found in failed.items():
         target, source = ends[pair]
         truth = truths[(target, source)]
         middle, first, second = chain_fragment(fragments, target, source)
-        chain = refined_link(fragments, settings, target, middle) @ refined_link(fragments, settings, middle, source)
+        links = refined_ground_truths(fragments, [(target, middle), (middle, source)], settings, cache)
+        chain = links[(target, middle)] @ links[(middle, source)]
         index = NearestNeighbors(fragments.xyz[target].astype(np.float64))
         points = fragments.xyz[source].astype(np.float64)
         poses = {"truth": truth} | {m: np.array(found[m]["transform"], dtype=np.float64) for m in methods}

@@ -38,6 +38,12 @@ from linereg.registration.evaluation import evaluate_registration
 from linereg.registration.poses import rotation_gap_deg
 
 
+def pose_gap(first: np.ndarray, second: np.ndarray) -> tuple[float, float]:
+    """Rotation angle (deg) and translation distance (cm) between two ``(4, 4)`` rigid poses."""
+    angle = float(rotation_gap_deg(first[None, :3, :3], second[:3, :3])[0])
+    return angle, 100.0 * float(np.linalg.norm(first[:3, 3] - second[:3, 3]))
+
+
 def pose_rows(pairs: int, seed: int) -> list[dict]:
     """Per drawn pair: its bin, the correction and the alignment at both poses."""
     shared = shared_data_dir()
@@ -57,8 +63,7 @@ def pose_rows(pairs: int, seed: int) -> list[dict]:
         rows.append(
             {
                 "bin": bin_label(*DEFAULT_BINS[bin_number], bin_number == len(DEFAULT_BINS) - 1),
-                "correction_deg": float(rotation_gap_deg(truth[None, :3, :3], tracking[:3, :3])[0]),
-                "correction_cm": 100 * float(np.linalg.norm(truth[:3, 3] - tracking[:3, 3])),
+                **dict(zip(("correction_deg", "correction_cm"), pose_gap(truth, tracking), strict=True)),
                 "tracking": evaluate_registration(source_points, target_points, distance, tracking)[:2],
                 "refined": evaluate_registration(source_points, target_points, distance, truth)[:2],
                 "overlap": [

@@ -104,7 +104,26 @@ def main(wheel: str) -> None:
     check((HERE / "run" / "checkpoints" / "last.pt").is_file(), "linereg-train wrote no checkpoint")
     run("linereg-evaluate", f"checkpoint={HERE / 'run'}", f"output_dir={HERE / 'evaluation'}", "progress=false")
     check((HERE / "evaluation" / "metrics.json").is_file(), "linereg-evaluate wrote no metrics.json")
-    print(f"wheel smoke test: linereg {linereg.__version__} from {site}: imports, loss, register, commands, help OK")
+
+    # Pretrained weights ship inside the wheel and work by name.
+    from linereg import pretrained
+
+    shipped = {f"rpm_{loss}_{protocol}" for loss in ("gt", "cd", "ours") for protocol in ("airplane", "human", "real")}
+    check(shipped <= set(pretrained.names()), f"pretrained names: {pretrained.names()}")
+    check(all(pretrained.path(name).is_relative_to(site) for name in shipped), "pretrained files outside the wheel")
+    by_name = ("checkpoint=rpm_ours_airplane", "dataset=procedural", f"output_dir={HERE / 'by_name'}", "progress=false")
+    run("linereg-evaluate", *by_name, "trainer.num_points=128", "max_batches=1")
+    check((HERE / "by_name" / "metrics.json").is_file(), "linereg-evaluate checkpoint=<name> wrote no metrics.json")
+
+    # Two gloo processes under torchrun, from this folder outside the checkout.
+    ddp = (*tiny[:1], f"paths.output_dir={HERE / 'ddp'}", *tiny[2:], "trainer.device=cpu")
+    torchrun = (sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node=2")
+    run(*torchrun, "-m", "linereg.train", *ddp)
+    check((HERE / "ddp" / "checkpoints" / "last.pt").is_file(), "torchrun: no checkpoint")
+    print(
+        f"wheel smoke test: linereg {linereg.__version__} from {site}: imports, loss, register, commands, help, "
+        "pretrained weights, torchrun OK"
+    )
 
 
 if __name__ == "__main__":

@@ -15,6 +15,8 @@ from typing import Any
 
 import torch
 
+from linereg import pretrained
+
 FORMAT = "linereg-checkpoint"
 VERSION = 1
 CHECKPOINT_DIR = "checkpoints"
@@ -27,8 +29,9 @@ class CorruptCheckpointError(ValueError):
 
 
 def find_checkpoint(path: str | Path, prefer: tuple[str, ...] | None = None) -> Path:
-    """The checkpoint file named by ``path``: the file itself, or in a run folder the first of
-    ``prefer`` found in ``<run>/checkpoints/`` (or directly in the folder).
+    """The checkpoint file named by ``path``: the file itself, in a run folder the first of
+    ``prefer`` found in ``<run>/checkpoints/`` (or directly in the folder), or the file of a
+    shipped name of :mod:`linereg.pretrained` (``rpm_ours_airplane``) that is no path here.
 
     With ``prefer=None`` a run folder gives the checkpoint its own final evaluation used (the
     ``evaluated_checkpoint`` that ``python -m train`` records in ``<run>/metrics.json``: ``last.pt``
@@ -37,6 +40,8 @@ def find_checkpoint(path: str | Path, prefer: tuple[str, ...] | None = None) -> 
     Raises:
         FileNotFoundError: nothing suitable exists.
     """
+    if pretrained.is_name(path) and not Path(path).exists():
+        return pretrained.path(str(path))
     path = Path(path).expanduser()
     if path.is_file():
         return path
@@ -50,7 +55,10 @@ def find_checkpoint(path: str | Path, prefer: tuple[str, ...] | None = None) -> 
         raise FileNotFoundError(
             f"no checkpoint ({' or '.join(dict.fromkeys(prefer))}) in {path} or {path / CHECKPOINT_DIR}"
         )
-    raise FileNotFoundError(f"checkpoint not found: {path}")
+    raise FileNotFoundError(
+        f"checkpoint not found: {path} (not a file, a run folder or a pretrained name: "
+        f"{', '.join(pretrained.names())})"
+    )
 
 
 def _evaluated_name(run: Path) -> tuple[str, ...]:
@@ -63,7 +71,8 @@ def _evaluated_name(run: Path) -> tuple[str, ...]:
 
 
 def load_checkpoint(path: str | Path, map_location: str | torch.device = "cpu") -> dict[str, Any]:
-    """Load a checkpoint written by :func:`save_checkpoint` (a file or a run folder).
+    """Load a checkpoint written by :func:`save_checkpoint` (a file, a run folder or a pretrained
+    name); portable data paths of its config (:func:`linereg.pretrained.local_config`) point here.
 
     Raises:
         FileNotFoundError: no checkpoint there.
@@ -84,4 +93,5 @@ def load_checkpoint(path: str | Path, map_location: str | torch.device = "cpu") 
     if state.get("version") != VERSION:
         raise ValueError(f"{file}: checkpoint version {state.get('version')} is not supported (expected {VERSION})")
     state["path"] = str(file)
+    state["config"] = pretrained.local_config(state.get("config") or {})
     return state

@@ -24,6 +24,7 @@ from typing import Any
 
 import numpy as np
 
+from linereg import pretrained
 from linereg.checks import as_rigid_transform, check_points, is_tensor
 from linereg.fps import farthest_point_subset as fps
 from linereg.io import PointCloud, read_point_cloud
@@ -112,14 +113,15 @@ def _checked_init(init: Any) -> np.ndarray | None:
 class LearnedRegistration:
     """A network trained by ``python -m train`` as a registration method, optionally refined.
 
-    The clouds are centred, scaled together into the unit ball (the training data's scale),
-    farthest-point sampled to the run's ``trainer.num_points``, given normals (estimated when
-    missing); of the model's iterates, the one the run's ``iterate`` rule chooses
+    The clouds are centred, farthest-point sampled to the run's ``trainer.num_points``, scaled
+    together into the cube its training pairs were scaled into (:func:`training_half_extent`),
+    given normals (estimated on the subsets); of the model's iterates, the one the run's ``iterate`` rule chooses
     (:mod:`linereg.registration.iterates`, from the checkpoint's config) is mapped back to the
     original frames.
 
     Args:
-        checkpoint: a checkpoint file or a run folder (the checkpoint the run evaluated, else ``best.pt``).
+        checkpoint: a checkpoint file, a run folder (the checkpoint the run evaluated, else
+            ``best.pt``) or a pretrained name (:mod:`linereg.pretrained`).
         device: torch device of the model.
         num_points: points per cloud fed to the model (``None``: the run's ``trainer.num_points``).
         refine: also run the default solver from the model's estimate (a single start:
@@ -146,6 +148,7 @@ class LearnedRegistration:
         self.checkpoint = state["path"]
         self.iterate = IterateRule.from_config(state["config"].get("iterate"))
         self.num_points = num_points or state["config"].get("trainer", {}).get("num_points") or 1024
+        self.half_extent = training_half_extent(state["config"].get("dataset") or {})
         self.refiner = None
         if refine:
             options = {"starts": 1, **(dict(refine) if isinstance(refine, Mapping) else {})}
@@ -154,12 +157,14 @@ class LearnedRegistration:
     def _predict(self, src, tgt, src_normals, tgt_normals) -> MethodResult:
         import torch
 
-        from linereg.pointcloud import estimate_normals
+        from linereg.pointcloud import estimate_normals, fit_into_cube
         from linereg.structures import PairBatch
 
         src_s, tgt_s = fps(src, self.num_points), fps(tgt, self.num_points)
-        radius = float(max(np.linalg.norm(src_s, axis=1).max(), np.linalg.norm(tgt_s, axis=1).max(), 1e-12))
-        clouds = (src_s / radius, tgt_s / radius)
+        center, scale = np.zeros(3), 1.0
+        clouds = (src_s, tgt_s)
+        if self.half_extent is not None:
+            clouds, center, scale = fit_into_cube(src_s, tgt_s, half_extent=self.half_extent)
         normals = [estimate_normals(cloud) for cloud in clouds]
         batch = PairBatch(
             src_xyz=torch.from_numpy(clouds[0]).float()[None],
@@ -171,7 +176,8 @@ class LearnedRegistration:
             output = self.model(batch)
             chosen, _ = self.iterate.select(output.transforms, batch.src_xyz, batch.tgt_xyz)
         transform = chosen[0].double().cpu().numpy()
-        transform[:3, 3] *= radius
+        rotation = transform[:3, :3]
+        transform[:3, 3] = transform[:3, 3] / scale + center - rotation @ center
         return MethodResult(transform=transform)
 
     def __call__(self, src, tgt, src_normals=None, tgt_normals=None) -> MethodResult:
@@ -187,6 +193,25 @@ class LearnedRegistration:
         refined = run_with_init(self.refiner, src, tgt, init=predicted.transform)
         info.update(refined.info)
         return MethodResult(transform=refined.transform, seconds=predicted.seconds + refined.seconds, info=info)
+
+
+def training_half_extent(dataset: Mapping[str, Any]) -> float | None:
+    """Half the side of the cube ``[-h, h]^3`` a run's pairs were scaled into, from its dataset config
+    (``half_extent`` of the dataset or of its pair protocol, else the dataset builder's default;
+    ``None``: the clouds' own units)."""
+    import inspect
+
+    from linereg.datasets import DATASETS
+
+    for section in (dataset, dataset.get("protocol") or {}):
+        if "half_extent" in section:
+            return section["half_extent"]
+    name = dataset.get("name")
+    if name in DATASETS.names():
+        parameter = inspect.signature(DATASETS.get(name)).parameters.get("half_extent")
+        if parameter is not None and parameter.default is not inspect.Parameter.empty:
+            return parameter.default
+    return 1.0
 
 
 def quality(
@@ -211,13 +236,14 @@ def _build(method: Any, device: str | None, options: dict[str, Any]):
         config = {"name": DEFAULT_METHOD, **options}
     elif isinstance(method, str) and method in METHODS:
         config = {"name": method, **options}
-    elif isinstance(method, str | os.PathLike) and Path(method).expanduser().exists():
+    elif isinstance(method, str | os.PathLike) and (Path(method).expanduser().exists() or pretrained.is_name(method)):
         settings = {"device": device or "cpu", **options}
-        return LearnedRegistration(Path(method).expanduser(), **settings), {"checkpoint": str(method), **options}
+        checkpoint = method if pretrained.is_name(method) else Path(method).expanduser()
+        return LearnedRegistration(checkpoint, **settings), {"checkpoint": str(method), **options}
     else:
         raise UnknownNameError(
-            f"method={method!r}: not a registered method ({', '.join(['default', *METHODS.names()])}) "
-            "nor an existing checkpoint file or run folder"
+            f"method={method!r}: not a registered method ({', '.join(['default', *METHODS.names()])}), "
+            f"a pretrained network ({', '.join(pretrained.names())}) nor an existing checkpoint file or run folder"
         )
     if device is not None:
         config["device"] = device
@@ -243,8 +269,9 @@ def register(
             the result includes it.
         method: ``"default"`` (the robust solver, ``robust``: CPU only), any name in
             :data:`linereg.registration.METHODS` (``adam_loss``, ``svd_irls``, ``icp_point``, ...),
-            a config ``{name: ..., **options}``, or a checkpoint file / run folder of
-            ``python -m train`` (the trained network; ``refine=True`` adds the solver).
+            a config ``{name: ..., **options}``, a checkpoint file / run folder of
+            ``python -m train`` or a pretrained name of :mod:`linereg.pretrained`
+            (``rpm_ours_airplane``: the trained network; ``refine=True`` adds the solver).
         device: torch device of the method (``None``: its default, the CPU); only for methods
             that take one (the solvers and networks, not the Open3D baselines).
         fitness_threshold: inlier distance of ``fitness`` / ``inlier_rmse`` in input units

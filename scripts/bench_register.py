@@ -279,7 +279,7 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     print(f"{args.pairs} partial-vs-whole airplane pairs (1024 vs 2048 points), {os.cpu_count()} CPUs\n")
     print(
-        "| machine | solver median (s) | max (s) | median Err_R (deg) | ICP (s) | solver / ICP "
+        "| machine | solver median (s) | max (s) | median Err_R (deg) | ICP (s) | solver time / ICP time "
         "| command wall (s) | import api (s) | import torch (s) | command / import torch |"
     )
     print("|---|---|---|---|---|---|---|---|---|---|")

@@ -37,7 +37,7 @@ cell() {
   echo "run: $dir"
   local start=$SECONDS
   "$PY" -m train "experiment=$experiment" "protocol=$protocol" recipe=paper "seed=$seed" "${extra[@]}" "$@" \
-    "hydra.run.dir=$dir" >> "$dir.log" 2>&1 || { tail -20 "$dir.log"; exit 1; }
+    trainer.threads=1 trainer.progress=false "hydra.run.dir=$dir" >> "$dir.log" 2>&1 || { tail -20 "$dir.log"; exit 1; }
   echo $((SECONDS - start)) >> "$dir.seconds"  # wall-clock seconds of each (resumed) attempt
 }
 

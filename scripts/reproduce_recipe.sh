@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # The tables of docs/results.md: every cell of a protocol trained under the default recipe
-# (recipe=cpu), one `python -m train experiment=<cell> protocol=<protocol> seed=<s>` per cell at
-# the grid's backbone sizes, then the cells' per-seed table and the protocol's figure.
+# (recipe=cpu), one `python -m train experiment=<cell> protocol=<protocol> seed=<s>` per cell,
+# then the cells' per-seed table and the protocol's figure.
 #
 #   PROTOCOL=airplane SEEDS="0 1 2" scripts/reproduce_recipe.sh
 #   PROTOCOL=human CELLS="rpm_cd rpm_ours" SEEDS="0 1 2 3 4" scripts/reproduce_recipe.sh
@@ -9,10 +9,11 @@
 #
 # PROTOCOL: airplane, human or real (configs/protocol/, the shared data). CELLS: experiments
 # (<rpm|dcp|fmr>_<gt|cd|cdw|ours>) and untrained controls (<rpm|dcp|fmr>_untrained: the initial
-# weights evaluated); by default every cell the protocol's table shows. Grid sizes: RPM-Net with
-# 16 neighbours per ball (model=rpmnet_cpu), DCP with 256-d embeddings. Finished cells
-# (metrics.json present) are skipped, an interrupted one resumes from its last checkpoint. Runs
-# land in $OUT/$PROTOCOL (default outputs/recipe), one thread each, so two share a 2-core machine.
+# weights evaluated); by default every cell the protocol's table shows. The command is the README's
+# cell command as it is (the backbone sizes are the recipe's, configs/recipe_model/); the script
+# adds only the machine: one thread each, no progress bars, so two runs share a 2-core machine.
+# Finished cells (metrics.json present) are skipped, an interrupted one resumes from its last
+# checkpoint. Runs land in $OUT/$PROTOCOL (default outputs/recipe).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 PY=${PYTHON:-.venv/bin/python}
@@ -39,10 +40,6 @@ arguments() {
     echo "reproduce_recipe.sh: error: unknown cell '$cell' (<rpm|dcp|fmr>_<gt|cd|cdw|ours|untrained>)" >&2
     return 2
   }
-  case $experiment in
-    rpm_*) extra+=(model=rpmnet_cpu) ;;
-    dcp_*) extra+=(model.emb_dims=256 model.ff_dims=512) ;;
-  esac
   echo "experiment=$experiment protocol=$PROTOCOL seed=$seed ${extra[*]}"
 }
 

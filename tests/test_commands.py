@@ -1,4 +1,5 @@
-"""The four commands: ``--help`` pages, and one-line errors with exit code 2 for bad arguments and files."""
+"""The four commands: ``--help`` pages, one-line errors with exit code 2 for bad arguments and files,
+and no run folder left by a failed command."""
 
 from __future__ import annotations
 
@@ -15,9 +16,10 @@ import pytest
 from hydra.errors import ConfigCompositionException
 from omegaconf.errors import ConfigAttributeError
 
+from linereg.io import write_point_cloud
 from linereg.registration.iterates import IterateRule
 from linereg.train.__main__ import main as train_main
-from linereg.train.cli import EXTRAS, one_line
+from linereg.train.cli import EXTRAS, one_line, remove_unused_run_folder
 from linereg.train.evaluate import iterate_rule
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -100,6 +102,57 @@ def test_a_missing_mandatory_value_ends_in_one_line_and_exit_code_2(command, arg
     done = _run(["-m", MODULES[command], *arguments], tmp_path)
     _assert_usage_error(done, command, *named)
     assert not (tmp_path / "outputs" / "register").exists()
+
+
+@pytest.mark.parametrize(
+    ("command", "arguments", "named"),
+    [
+        ("linereg-evaluate", ["checkpoint=/nonexistent"], "checkpoint not found: /nonexistent"),
+        ("linereg-register", ["source=/nonexistent", "target=/nonexistent"], "source=/nonexistent: no such file"),
+        ("linereg-benchmark", ["benchmark=run", "benchmark.run=/nonexistent"], "/nonexistent"),
+    ],
+    ids=["evaluate", "register", "benchmark"],
+)
+def test_a_failed_command_leaves_no_run_folder(command, arguments, named, tmp_path, monkeypatch, capsys):
+    assert _run_in_process(command, arguments, monkeypatch, tmp_path) == 2
+    (line,) = capsys.readouterr().err.strip().splitlines()
+    assert line.startswith(f"{command}: error: ") and named in line
+    assert not list(tmp_path.iterdir())  # neither the run folder nor the outputs/ folders above it
+
+
+def test_training_on_pairs_without_an_easy_variant_names_the_override(tmp_path, monkeypatch, capsys):
+    pairs = tmp_path / "pairs"
+    pairs.mkdir()
+    cloud = np.random.default_rng(0).standard_normal((100, 3))
+    write_point_cloud(pairs / "a_src.ply", cloud)
+    write_point_cloud(pairs / "a_tgt.ply", cloud + 0.1)
+    arguments = ["dataset=pairs_folder", f"dataset.root={pairs}", "trainer.num_points=64", "trainer.device=cpu"]
+    arguments.append("curriculum.stages.easy.epochs=1")
+    (tmp_path / "work").mkdir()
+    assert _run_in_process("linereg-train", arguments, monkeypatch, tmp_path / "work") == 2
+    (line,) = capsys.readouterr().err.strip().splitlines()
+    assert line == (
+        "linereg-train: error: dataset 'pairs_folder' has no variant 'easy' (its variants: none); "
+        "pass curriculum.stages.easy.variant=null to train on the pairs as they are"
+    )
+    assert not list((tmp_path / "work").iterdir())  # the failed run leaves no folder
+
+
+def test_only_a_run_folder_without_results_is_removed(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    runs = tmp_path / "outputs" / "train" / "runs"
+    for name in ("bare", "checkpoint"):
+        (runs / name / ".hydra").mkdir(parents=True)
+        for file in ("config.yaml", "hydra.yaml", "overrides.yaml"):
+            (runs / name / ".hydra" / file).write_text("{}")
+        (runs / name / "tensorboard").mkdir()  # an empty folder is nothing written
+    (runs / "checkpoint" / "checkpoints").mkdir()
+    (runs / "checkpoint" / "checkpoints" / "last.pt").write_bytes(b"weights")
+    assert not remove_unused_run_folder(runs / "checkpoint")
+    assert (runs / "checkpoint" / "checkpoints" / "last.pt").is_file()
+    assert remove_unused_run_folder(runs / "bare")
+    assert not (runs / "bare").exists() and runs.is_dir()  # its parents stay while they hold another run
+    assert not remove_unused_run_folder(tmp_path)  # never the working folder
 
 
 def test_a_corrupt_checkpoint_is_named_without_a_traceback(tmp_path):

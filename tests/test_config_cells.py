@@ -26,6 +26,8 @@ from hydra import compose, initialize_config_dir
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import OmegaConf
 
+from tests.pair_identities import pair_identities
+
 ROOT = Path(__file__).resolve().parent.parent
 RECIPES = ("cpu", "paper")
 PROTOCOLS = ("none", "airplane", "human", "real", "procedural")
@@ -242,9 +244,14 @@ def renamed(values: Mapping[str, Any]) -> dict[str, Any]:
     return values
 
 
+# The machine a run computes on, not what it computes: the command line's alone (configs/train.yaml).
+MACHINE = ("trainer.device", "trainer.threads", "trainer.progress", "trainer.num_workers")
+
+
 def effective(values: Mapping[str, Any]) -> dict[str, Any]:
     """What a run does with ``values``: stages with 0 epochs are skipped (linereg.train.curriculum),
-    and an untrained control (``trainer.untrained``) runs no stage at all."""
+    an untrained control (``trainer.untrained``) runs no stage at all, and the machine keys
+    (:data:`MACHINE`) are where it runs, not what."""
     skipped = {
         key.rsplit(".", 1)[0]
         for key, value in values.items()
@@ -254,7 +261,7 @@ def effective(values: Mapping[str, Any]) -> dict[str, Any]:
     return {
         key: value
         for key, value in values.items()
-        if not (key.rsplit(".", 1)[0] in skipped or (untrained and key.startswith("curriculum.")))
+        if not (key.rsplit(".", 1)[0] in skipped or (untrained and key.startswith("curriculum.")) or key in MACHINE)
     }
 
 
@@ -300,6 +307,7 @@ TRAINING_GROUPS = (
     "recipe_loss",
     "recipe_cell",
     "recipe_cell_loss",
+    "recipe_model",
     "scheduler",
 )
 # Interpolations a training file may hold: links to the run's own values, never to a recipe or to
@@ -356,6 +364,7 @@ def test_specialisation_files_name_existing_choices():
         "curriculum": {f"{r}_{p}" for r in recipes for p in protocols},
         "recipe_protocol": {f"{r}_{p}" for r in recipes for p in protocols},
         "recipe_loss": {f"{r}_{loss}" for r in recipes for loss in _options("loss")},
+        "recipe_model": {f"{r}_{m}" for r in recipes for m in _options("model")},
         "recipe_cell": {f"{r}_{p}_{m}" for r in recipes for p in protocols for m in _options("model")},
         "recipe_cell_loss": {f"{r}_{p}_{loss}" for r in recipes for p in protocols for loss in _options("loss")},
     }
@@ -364,20 +373,28 @@ def test_specialisation_files_name_existing_choices():
         assert set(_options(group)) - {"none", "quick", "tiny"} <= names, group
 
 
-def _pair_identities(dataset: Any) -> set[tuple[str, int]]:
-    """``(shape file or source frame, view or target frame)`` of every pair of a split."""
-    from linereg.datasets.splits import SubsetPairs
+# Groups that describe what is trained and on which data; the machine is the command line's.
+DATA_GROUPS = tuple(group for group in TRAINING_GROUPS if group not in ("debug", "logger", "paths"))
 
-    indices = range(len(dataset))
-    if isinstance(dataset, SubsetPairs):
-        dataset, indices = dataset.base, dataset.indices
-    if hasattr(dataset, "pairs"):  # an RGB-D sequence
-        return {(str(dataset.pairs[i][0].depth), dataset.pairs[i][1].number) for i in indices}
-    identities = set()
-    for index in indices:
-        shape, slot = divmod(index, len(dataset.views))
-        identities.add((str(dataset.shapes.items[shape][1]), dataset.views[slot]))
-    return identities
+
+def test_no_data_file_sets_the_machine():
+    """No protocol, dataset, experiment, recipe or component file sets a :data:`MACHINE` key, and
+    every protocol x experiment resolves to the command's defaults: CUDA when present, torch's own
+    thread count, progress bars."""
+    for group in DATA_GROUPS:
+        for path in (CONFIGS / group).glob("*.yaml"):
+            values = flatten({k: v for k, v in (yaml.safe_load(path.read_text()) or {}).items() if k != "defaults"})
+            for key in MACHINE:
+                assert not any(k == key or k.startswith(key + ".") for k in values), f"{path} sets {key}"
+    cells = {name: overrides for name, overrides in grid_cells() if name.startswith("cpu/")}
+    for name, values in resolve_cells(CONFIGS, cells).items():
+        machine = {key: values[key] for key in MACHINE}
+        assert machine == {
+            "trainer.device": "auto",
+            "trainer.threads": None,
+            "trainer.progress": True,
+            "trainer.num_workers": 0,
+        }, name
 
 
 @pytest.mark.parametrize("protocol", ["airplane", "human", "real"])
@@ -395,8 +412,8 @@ def test_validation_pairs_are_not_test_pairs(shared_data, protocol):
                 node = node.setdefault(parent, {})
             node[last] = value.replace("/ROOT/../shared/data", str(shared_data)) if isinstance(value, str) else value
     dataset["cache_dir"] = None
-    validation = _pair_identities(build_split(dataset, "val", progress=False))
-    test = _pair_identities(build_split(dataset, "test", progress=False))
+    validation = pair_identities(build_split(dataset, "val", progress=False))
+    test = pair_identities(build_split(dataset, "test", progress=False))
     assert len(validation) == {"airplane": 36, "human": 10, "real": 10}[protocol] and test
     assert not validation & test
 
@@ -418,13 +435,14 @@ def _measured_reference(protocol: str, cell: str) -> str:
 
 @pytest.mark.parametrize("protocol", ["airplane", "human", "real"])
 def test_the_recipe_script_runs_the_measured_cells(protocol):
-    """``scripts/reproduce_recipe.sh`` (a plain ``experiment=<cell> protocol=<protocol>`` per cell)
-    resolves to the runs that measured the tables of docs/results.md."""
+    """``scripts/reproduce_recipe.sh`` (a plain ``experiment=<cell> protocol=<protocol>`` per cell, no
+    model override) resolves to the runs that measured the tables of docs/results.md."""
     cells = [cell for cell in MEASURED if not (protocol == "real" and cell.startswith("dcp_"))]
     env = dict(os.environ) | {"DRY": "1", "PROTOCOL": protocol, "CELLS": " ".join(cells), "SEEDS": "0"}
     lines = subprocess.run(["bash", str(RECIPE_SCRIPT)], env=env, capture_output=True, text=True, check=True)
     commands = {line.split()[0]: line.split()[2:] for line in lines.stdout.splitlines()}
     assert set(commands) == set(cells)
+    assert not [arg for args in commands.values() for arg in args if arg.startswith(("model", "+model"))]
     reference = unpack(json.loads(FIXTURE.read_text()))
     resolved = resolve_cells(ROOT / "configs", commands)
     failures = []

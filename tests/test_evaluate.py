@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import csv
 import json
 from pathlib import Path
 
@@ -9,12 +10,16 @@ import numpy as np
 import pytest
 import torch
 from hydra import compose, initialize_config_dir
+from torch import nn
 
 from linereg.checkpoint import find_checkpoint, load_checkpoint
 from linereg.datasets.benchmark_pairs import run_pairs
+from linereg.datasets.pairs_folder import FolderPairs
 from linereg.datasets.splits import build_split
-from linereg.train import loop
-from linereg.train.evaluate import Evaluation, evaluate, report
+from linereg.io import write_point_cloud, write_transform
+from linereg.structures import PairBatch, RegistrationOutput
+from linereg.train import distributed, loop
+from linereg.train.evaluate import Evaluation, evaluate, evaluate_model, report
 from linereg.train.figures import plot_registration, registration_figure
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -46,6 +51,8 @@ def test_round_trip_matches_the_training_evaluation(trained_run, tmp_path):
     assert json.loads((tmp_path / "metrics.json").read_text()) == json.loads(json.dumps(content))
     rows = (tmp_path / "pairs.csv").read_text().splitlines()
     assert rows[0].startswith("pair,err_r_deg,err_t_l1") and len(rows) == 3
+    assert rows[0].endswith(",identity_err_pw_l2,fitness,inlier_rmse,confident")
+    assert 0.0 <= content["model"]["fitness_mean"] <= 1.0 and "confident_share" in content["model"]
     assert sorted(p.name for p in (tmp_path / "figures").iterdir()) == ["pair_0000.png", "pair_0001.png"]
     table = (tmp_path / "table.md").read_text()
     assert "| identity (no motion) |" in table and "alpha=0.05" in table
@@ -126,6 +133,72 @@ def test_benchmark_pairs_of_a_run_are_its_test_pairs(trained_run):
     assert len(run_pairs(run=str(run_dir), split="val", pairs=1)) == 1
     redrawn = run_pairs(run=str(run_dir), dataset_seed=7)  # other samples of the same pairs
     assert len(redrawn) == len(pairs) and not np.allclose(redrawn[0].src_xyz, pairs[0].src_xyz)
+
+
+def _pairs_folder(folder: Path, sizes: tuple[int, ...], *, labelled: bool) -> None:
+    """Pairs ``p<i>`` of anisotropic blobs of ``sizes[i]`` points away from the origin (zero padding
+    lands far from them), the target a rotated and shifted copy; ``_gt.txt`` files when ``labelled``."""
+    rng = np.random.default_rng(0)
+    folder.mkdir()
+    angle = np.deg2rad(30.0)
+    gt = np.eye(4)
+    gt[:2, :2] = [[np.cos(angle), -np.sin(angle)], [np.sin(angle), np.cos(angle)]]
+    gt[:3, 3] = [0.2, -0.1, 0.3]
+    for i, size in enumerate(sizes):
+        cloud = rng.normal(size=(size, 3)) * [1.0, 0.6, 0.3] + 5.0
+        write_point_cloud(folder / f"p{i}_src.ply", cloud)
+        write_point_cloud(folder / f"p{i}_tgt.ply", cloud @ gt[:3, :3].T + gt[:3, 3])
+        if labelled:
+            write_transform(folder / f"p{i}_gt.txt", gt)
+
+
+class _GroundTruthModel(nn.Module):
+    """Answers each pair's ground truth, moved by ``offset`` (a wrong estimate when not zero)."""
+
+    def __init__(self, offset: float) -> None:
+        super().__init__()
+        self.offset = offset
+
+    def forward(self, batch: PairBatch) -> RegistrationOutput:
+        estimate = batch.gt_transform.clone()
+        estimate[:, 0, 3] += self.offset
+        return RegistrationOutput(transforms=[estimate])
+
+
+def test_the_registration_check_tells_a_right_estimate_from_a_wrong_one(tmp_path):
+    _pairs_folder(tmp_path / "pairs", (150, 200), labelled=True)
+    loader = distributed.make_loader(
+        FolderPairs(tmp_path / "pairs"), batch_size=2, num_points=None, shuffle=False
+    )  # one padded batch: the 150-point pair has src_lengths 150
+    right, wrong = (
+        evaluate_model(_GroundTruthModel(offset), loader, device=torch.device("cpu"), assess=True)
+        for offset in (0.0, 1.5)
+    )
+    assert [a.confident for a in right.assessments] == [True, True]
+    assert all(a.fitness > 0.99 and a.inlier_rmse < 1e-4 for a in right.assessments)
+    assert [a.confident for a in wrong.assessments] == [False, False]
+    assert right.metrics([0.1])["confident_share"] == 1.0 and wrong.metrics([0.1])["confident_share"] == 0.0
+    assert evaluate_model(_GroundTruthModel(0.0), loader, device=torch.device("cpu")).assessments is None
+
+
+def test_evaluate_checks_the_registration_of_unlabelled_pairs(trained_run, tmp_path, capsys):
+    run_dir, _ = trained_run
+    _pairs_folder(tmp_path / "pairs", (120, 120, 120), labelled=False)
+    overrides = ["dataset=pairs_folder", f"dataset.root={tmp_path / 'pairs'}", "dataset.splits.test={}"]
+    cfg = _compose(
+        "evaluate",
+        [f"checkpoint={run_dir}", *overrides, f"output_dir={tmp_path}/eval", "num_figures=0", "progress=false"],
+    )
+    content = evaluate(cfg)
+    assert not content["labelled"] and {"fitness_mean", "inlier_rmse_mean", "confident_share"} <= set(content["model"])
+    with open(tmp_path / "eval" / "pairs.csv", newline="") as handle:
+        rows = list(csv.DictReader(handle))
+    assert list(rows[0]) == ["pair", "fitness", "inlier_rmse", "confident"] and len(rows) == 3
+    assert all(0.0 <= float(row["fitness"]) <= 1.0 and row["confident"] in ("true", "false") for row in rows)
+    shares = np.mean([row["confident"] == "true" for row in rows])
+    assert content["model"]["confident_share"] == pytest.approx(shares)
+    printed = capsys.readouterr().out
+    assert "3 pairs without ground truth" in printed and "| Method | Fitness | Inlier RMSE | Confident |" in printed
 
 
 def test_report_of_unlabelled_data():

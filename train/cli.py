@@ -1,22 +1,33 @@
 """What the four commands share: a bad argument, an unreadable file or a missing extra ends the
-command with one line on stderr naming it, and exit code 2 (no traceback).
+command with one line on stderr naming it, and exit code 2 (no traceback); a failed command
+leaves no run folder that holds nothing but Hydra's bookkeeping.
 
 Hydra reports its own errors (an unknown key, an unknown config option, a malformed override)
 over several lines and exits with 1; :func:`run_app` asks Hydra to raise them instead
 (``HYDRA_FULL_ERROR``) and writes them as one line, and :func:`reported` does the same for the
 errors of a command's body. An error that is no usage error (a bug, a diverged training) keeps
 its traceback. A user who sets ``HYDRA_FULL_ERROR=1`` gets every traceback, as Hydra documents.
+
+When a command fails (any error, a usage error or not), :func:`reported` removes the run folder
+Hydra created for it (:func:`remove_unused_run_folder`) unless the command wrote anything into it
+besides Hydra's ``.hydra/`` files and the log file: a checkpoint, a result or a TensorBoard file
+keeps the folder. The job folders of a multirun stay, as rows of the sweep's summary.
 """
 
 from __future__ import annotations
 
+import logging
 import os
+import shutil
 import sys
 from collections.abc import Callable, Iterator, Mapping
-from contextlib import contextmanager
+from contextlib import contextmanager, suppress
+from pathlib import Path
 from typing import Any, NoReturn
 
+from hydra.core.hydra_config import HydraConfig
 from hydra.errors import HydraException
+from hydra.types import RunMode
 from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
@@ -45,6 +56,9 @@ EXTRAS: Mapping[str, str] = {
     "submitit": "cluster",
 }
 """The modules that an extra of ``pyproject.toml`` (``[project.optional-dependencies]``) installs."""
+
+HYDRA_FILES = ("config.yaml", "hydra.yaml", "overrides.yaml")
+"""What Hydra writes into ``<run folder>/<hydra.output_subdir>/`` (``.hydra/``)."""
 
 _USER_TRACEBACKS = os.environ.get("HYDRA_FULL_ERROR") == "1"
 """The user asked for every traceback (read before :func:`run_app` sets the variable itself)."""
@@ -93,11 +107,71 @@ def require(cfg: DictConfig, command: str, hints: Mapping[str, str]) -> None:
 
 @contextmanager
 def reported(command: str) -> Iterator[None]:
-    """End the command with :func:`fail` when the block raises a usage error or misses an extra.
+    """End the command with :func:`fail` when the block raises a usage error or misses an extra,
+    and remove the run folder of a failed command when nothing was written into it.
 
     Used around the body of each command (Hydra adds lines of its own to errors that leave the
-    task function) and by :func:`run_app` around Hydra's composition.
+    task function) and by :func:`run_app` around Hydra's composition (no run folder yet).
     """
+    run = _single_run()
+    try:
+        with _usage_errors(command):
+            yield
+    except BaseException:
+        if run is not None:
+            with suppress(OSError):  # the command's own error is the one to report
+                remove_unused_run_folder(*run)
+        raise
+
+
+def _single_run() -> tuple[Path, str | None] | None:
+    """``(run folder, hydra.output_subdir)`` inside the job of a single Hydra run, else ``None``."""
+    if not HydraConfig.initialized():
+        return None
+    hydra = HydraConfig.get()
+    if hydra.mode != RunMode.RUN:
+        return None
+    return Path(hydra.runtime.output_dir), hydra.output_subdir
+
+
+def remove_unused_run_folder(folder: Path, output_subdir: str | None = ".hydra") -> bool:
+    """Remove the run ``folder`` of a failed command, and its parents that it leaves empty below the
+    working folder, when it holds nothing but Hydra's :data:`HYDRA_FILES` in ``output_subdir``, the
+    files of open logging file handlers (the command's log, closed first) and empty folders.
+
+    Returns:
+        Whether the folder was removed.
+    """
+    folder, cwd = folder.resolve(), Path.cwd().resolve()
+    if not folder.is_dir() or folder == cwd or folder in cwd.parents:
+        return False
+    handlers = [
+        (logger, handler)
+        for logger in [logging.getLogger(), *logging.Logger.manager.loggerDict.values()]
+        if isinstance(logger, logging.Logger)
+        for handler in logger.handlers
+        if isinstance(handler, logging.FileHandler) and folder in Path(handler.baseFilename).resolve().parents
+    ]
+    bookkeeping = {Path(handler.baseFilename).resolve() for _, handler in handlers}
+    if output_subdir is not None:
+        bookkeeping |= {folder / output_subdir / name for name in HYDRA_FILES}
+    for path in folder.rglob("*"):
+        if path.is_symlink() or (not path.is_dir() and path not in bookkeeping):
+            return False
+    for logger, handler in handlers:
+        logger.removeHandler(handler)
+        handler.close()
+    shutil.rmtree(folder)
+    for parent in folder.parents:
+        if cwd not in parent.parents or any(parent.iterdir()):
+            break
+        parent.rmdir()
+    return True
+
+
+@contextmanager
+def _usage_errors(command: str) -> Iterator[None]:
+    """End the command with :func:`fail` when the block raises a usage error or misses an extra."""
     if _USER_TRACEBACKS:
         yield
         return

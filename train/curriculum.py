@@ -113,6 +113,19 @@ class Curriculum:
             stages.append(Stage(name=str(name), **stage))
         return cls(stages, allow_empty=allow_empty)
 
+    def check_variants(self, dataset: Mapping[str, Any]) -> None:
+        """Raise ``ValueError`` naming the override that fixes each stage whose ``variant`` the
+        ``dataset`` config's ``variants`` lack."""
+        variants = dataset.get("variants") or {}
+        missing = [stage for stage in self.stages if stage.variant is not None and stage.variant not in variants]
+        if missing:
+            asked = ", ".join(sorted({repr(stage.variant) for stage in missing}))
+            overrides = " ".join(f"curriculum.stages.{stage.name}.variant=null" for stage in missing)
+            raise ValueError(
+                f"dataset {dataset.get('name')!r} has no variant {asked} (its variants: "
+                f"{', '.join(sorted(variants)) or 'none'}); pass {overrides} to train on the pairs as they are"
+            )
+
     @property
     def total_epochs(self) -> int:
         return sum(stage.epochs for stage in self.stages)

@@ -8,13 +8,20 @@ the identity (no motion) baseline, then the alpha-recall (fraction of pairs with
 ``output_dir=...``):
 
 * ``metrics.json``: means, medians, alpha-recall, loss of the model (when the checkpoint's loss
-  applies) and of the identity;
-* ``pairs.csv``: the errors of every pair;
+  applies) and of the identity; the means of the registration check below (``fitness_mean``,
+  ``inlier_rmse_mean``, ``confident_share``);
+* ``pairs.csv``: per pair, the errors (labelled data) and the registration check
+  (``fitness``, ``inlier_rmse``, ``confident``);
 * ``figures/pair_XXXX.png``: before/after scatter plots of the first ``num_figures`` pairs.
+
+The registration check is the one :func:`linereg.register` reports
+(:func:`~linereg.registration.evaluation.assess_registration`): the source as evaluated, moved by
+the model's estimate, against the target, with inliers within 3 sampling distances of the
+target; ``inlier_rmse`` is in the units of the evaluated clouds (those of the errors). It needs
+no ground truth: on unlabelled data it is what tells whether the network registered the pairs.
 
 Iterative models (RPM-Net, FMR) are scored on the iterate chosen by the checkpoint's ``iterate``
 block, or by ``iterate.rule=...`` on the command line (:mod:`linereg.registration.iterates`).
-Unlabelled data (no ``gt_transform``) has no errors: only the loss and the figures are written.
 Config: ``configs/evaluate.yaml``; ``linereg-evaluate --help``.
 """
 
@@ -42,6 +49,7 @@ from linereg.datasets.splits import build_split
 from linereg.losses import build_loss
 from linereg.metrics import ERROR_KEYS, aggregate_errors, paper_table, registration_errors
 from linereg.models import load_model
+from linereg.registration.evaluation import INLIER_DISTANCES, Assessment, assess_registration
 from linereg.registration.iterates import LAST_ITERATE, IterateRule
 from linereg.registry import plain
 from linereg.structures import LossOutput, PairBatch
@@ -53,6 +61,9 @@ log = logging.getLogger(__name__)
 COMMAND = "linereg-evaluate"
 
 IDENTITY = "identity (no motion)"
+
+ASSESSMENT_KEYS = ("fitness", "inlier_rmse", "confident")
+"""The per-pair registration check of ``pairs.csv`` (:class:`~linereg.registration.evaluation.Assessment`)."""
 
 
 @dataclass
@@ -79,6 +90,9 @@ class Evaluation:
         stats: mean loss statistics (e.g. line hits), ``stats/<name>``.
         meta: per-pair metadata, in order.
         kept: the first pairs with their estimates, for figures.
+        assessments: per pair, :func:`linereg.register`'s check of the estimate
+            (:func:`~linereg.registration.evaluation.assess_registration`), or ``None`` when not
+            asked for.
     """
 
     num_pairs: int = 0
@@ -88,6 +102,7 @@ class Evaluation:
     stats: dict[str, float] = field(default_factory=dict)
     meta: list[dict[str, Any]] = field(default_factory=list)
     kept: list[KeptPair] = field(default_factory=list)
+    assessments: list[Assessment] | None = None
 
     @property
     def labelled(self) -> bool:
@@ -95,13 +110,28 @@ class Evaluation:
 
     def metrics(self, alphas: Sequence[float], *, identity: bool = False) -> dict[str, float]:
         """Flat metrics: error means/medians and ``recall@<alpha>`` (model, or the identity),
-        plus the loss and statistics (model only)."""
+        plus the loss, statistics and registration check means (model only)."""
         errors = self.identity_errors if identity else self.errors
         values = {} if errors is None else aggregate_errors(errors, alphas=alphas)
         if not identity:
             values.update(self.losses)
             values.update(self.stats)
+            values.update(self.assessment_means())
         return values
+
+    def assessment_means(self) -> dict[str, float]:
+        """``fitness_mean``, ``inlier_rmse_mean`` (over the pairs with inliers; NaN without any) and
+        ``confident_share`` of the assessed pairs (empty when not assessed)."""
+        if not self.assessments:
+            return {}
+        fitness = np.array([a.fitness for a in self.assessments])
+        rmse = np.array([a.inlier_rmse for a in self.assessments])
+        with_inliers = fitness > 0
+        return {
+            "fitness_mean": float(fitness.mean()),
+            "inlier_rmse_mean": float(rmse[with_inliers].mean()) if with_inliers.any() else float("nan"),
+            "confident_share": float(np.mean([a.confident for a in self.assessments])),
+        }
 
 
 def _valid(points: torch.Tensor, lengths: torch.Tensor | None, index: int) -> np.ndarray:
@@ -123,6 +153,7 @@ def evaluate_model(
     progress: bool = False,
     description: str = "evaluate",
     iterate: IterateRule = LAST_ITERATE,
+    assess: bool = False,
 ) -> Evaluation:
     """Run ``model`` (in evaluation mode) over a loader and collect errors and losses.
 
@@ -138,13 +169,15 @@ def evaluate_model(
         progress: show a tqdm bar.
         description: bar label.
         iterate: the rule choosing, per pair, the iterate whose errors are measured.
+        assess: also run :func:`linereg.register`'s check on every pair (:func:`assess_pairs`).
 
     Returns:
-        An :class:`Evaluation`; errors only when every batch has ``gt_transform``.
+        An :class:`Evaluation`; errors only when every batch has ``gt_transform``, assessments
+        only with ``assess``.
     """
     was_training = model.training
     model.eval()
-    result = Evaluation()
+    result = Evaluation(assessments=[] if assess else None)
     errors: dict[str, list[np.ndarray]] = defaultdict(list)
     identity: dict[str, list[np.ndarray]] = defaultdict(list)
     sums: dict[str, float] = defaultdict(float)
@@ -167,6 +200,8 @@ def evaluate_model(
                 labelled = False
             else:
                 _add_errors(errors, identity, T_pred, batch)
+            if assess:
+                result.assessments += assess_pairs(T_pred, batch)
             result.kept += [_kept_pair(batch, T_pred, b) for b in range(min(size, keep - len(result.kept)))]
             result.meta.extend(batch.meta if batch.meta else [{} for _ in range(size)])
             result.num_pairs += size
@@ -200,6 +235,18 @@ def _add_errors(
             found[key].append(value.cpu().numpy())
 
 
+def assess_pairs(T_pred: torch.Tensor, batch: PairBatch) -> list[Assessment]:
+    """:func:`linereg.register`'s check of each estimate ``T_pred (B, 4, 4)``: the pair's valid
+    source points, moved by it, against its valid target points (numpy, on the CPU)."""
+    transforms = T_pred.detach().cpu().double().numpy()
+    return [
+        assess_registration(
+            _valid(batch.src_xyz, batch.src_lengths, b), _valid(batch.tgt_xyz, batch.tgt_lengths, b), transforms[b]
+        )
+        for b in range(batch.batch_size)
+    ]
+
+
 def _kept_pair(batch: PairBatch, T_pred: torch.Tensor, b: int) -> KeptPair:
     """Pair ``b`` of ``batch`` with its estimate, for figures."""
     return KeptPair(
@@ -212,11 +259,14 @@ def _kept_pair(batch: PairBatch, T_pred: torch.Tensor, b: int) -> KeptPair:
 
 
 def report(name: str, evaluation: Evaluation, alphas: Sequence[float]) -> str:
-    """The paper's table (model and identity rows) and the alpha-recall table, as markdown."""
+    """The paper's table (model and identity rows), the alpha-recall table and the registration
+    check (when assessed), as markdown."""
+    check = [_check_table(name, evaluation)] if evaluation.assessments else []  # zero or one table
     if not evaluation.labelled:
         loss = evaluation.losses.get("loss")
         loss_text = f"; mean loss {loss:.4g}" if loss is not None else ""
-        return f"{evaluation.num_pairs} pairs without ground truth: no registration errors{loss_text}."
+        summary = f"{evaluation.num_pairs} pairs without ground truth: no registration errors{loss_text}."
+        return "\n\n".join([summary, *check])
     summaries = {name: evaluation.metrics(alphas), IDENTITY: evaluation.metrics(alphas, identity=True)}
     recall_header = "| Method | " + " | ".join(f"alpha={a:g}" for a in alphas) + " |"
     recall_rows = [
@@ -234,6 +284,25 @@ def report(name: str, evaluation: Evaluation, alphas: Sequence[float]) -> str:
             recall_header,
             "|---|" + "---|" * len(alphas),
             *recall_rows,
+            *("\n" + table for table in check),
+        ]
+    )
+
+
+def _check_table(name: str, evaluation: Evaluation) -> str:
+    """The means of the registration check of an assessed evaluation, as a markdown table."""
+    means = evaluation.assessment_means()
+    count = len(evaluation.assessments)
+    confident = sum(check.confident for check in evaluation.assessments)
+    return "\n".join(
+        [
+            f"Registration check of linereg.register on {count} pairs (means; inliers within "
+            f"{INLIER_DISTANCES:g} sampling distances of the target):",
+            "",
+            "| Method | Fitness | Inlier RMSE | Confident |",
+            "|---|---|---|---|",
+            f"| {name} | {means['fitness_mean']:.3f} | {means['inlier_rmse_mean']:.4g} "
+            f"| {means['confident_share']:.3f} ({confident}/{count}) |",
         ]
     )
 
@@ -275,20 +344,32 @@ def write_evaluation(
     }
     if evaluation.labelled:
         content["identity"] = evaluation.metrics(alphas, identity=True)
-        with open(out_dir / "pairs.csv", "w", newline="") as handle:
-            writer = csv.writer(handle)
-            writer.writerow(["pair", *ERROR_KEYS, *(f"identity_{k}" for k in ERROR_KEYS)])
-            for i, meta in enumerate(evaluation.meta):
-                writer.writerow(
-                    [_pair_name(meta, i)]
-                    + [f"{evaluation.errors[k][i]:.6g}" for k in ERROR_KEYS]
-                    + [f"{evaluation.identity_errors[k][i]:.6g}" for k in ERROR_KEYS]
-                )
+    if evaluation.labelled or evaluation.assessments is not None:
+        _write_pairs(evaluation, out_dir / "pairs.csv")
     (out_dir / "metrics.json").write_text(json.dumps(content, indent=2))
     (out_dir / "table.md").write_text(report(name, evaluation, alphas) + "\n")
     if evaluation.kept:
         _write_figures(evaluation.kept, out_dir / "figures")
     return content
+
+
+def _write_pairs(evaluation: Evaluation, path: Path) -> None:
+    """``pairs.csv``: one row per pair with its errors and identity errors (labelled data) and its
+    registration check (when assessed)."""
+    error_keys = [*ERROR_KEYS, *(f"identity_{k}" for k in ERROR_KEYS)] if evaluation.labelled else []
+    check_keys = list(ASSESSMENT_KEYS) if evaluation.assessments is not None else []
+    with open(path, "w", newline="") as handle:
+        writer = csv.writer(handle)
+        writer.writerow(["pair", *error_keys, *check_keys])
+        for i, meta in enumerate(evaluation.meta):
+            row = [_pair_name(meta, i)]
+            if evaluation.labelled:
+                row += [f"{evaluation.errors[k][i]:.6g}" for k in ERROR_KEYS]
+                row += [f"{evaluation.identity_errors[k][i]:.6g}" for k in ERROR_KEYS]
+            if check_keys:
+                check = evaluation.assessments[i]
+                row += [f"{check.fitness:.6g}", f"{check.inlier_rmse:.6g}", str(check.confident).lower()]
+            writer.writerow(row)
 
 
 def _write_figures(pairs: Sequence[KeptPair], folder: Path) -> None:
@@ -350,6 +431,7 @@ def evaluate(cfg: DictConfig) -> dict[str, Any]:
         keep=cfg.num_figures,
         progress=cfg.progress,
         iterate=iterate,
+        assess=True,
     )
     name = f"{stored['model']['name']} ({Path(state['path']).name})"
     output_dir = Path(cfg.output_dir)

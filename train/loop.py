@@ -104,6 +104,7 @@ class Trainer:
         self.model = MODELS.build(config["model"]).to(self.device)
         self.loss = loss.to(self.device)
         self.curriculum = Curriculum.from_config(config["curriculum"], allow_empty=self.settings.untrained)
+        self.curriculum.check_variants(config["dataset"])
         self.optimizer = OPTIMIZERS.build(config["optimizer"], self.model.parameters())
         self.base_lr = float(config["optimizer"]["lr"])
         self.scheduler = None
@@ -185,14 +186,22 @@ class Trainer:
             group["lr"] = lr
             group["initial_lr"] = lr
         self.scheduler = SCHEDULERS.build(self.config["scheduler"], self.optimizer, epochs=stage.epochs)
-        self.train_data = build_split(
-            self.config["dataset"],
-            "train",
-            variant=stage.variant,
-            subset=stage.subset,
-            seed=self.seed,
-            progress=self.settings.progress and self.ctx.is_main,
-        )
+        try:
+            self.train_data = build_split(
+                self.config["dataset"],
+                "train",
+                variant=stage.variant,
+                subset=stage.subset,
+                seed=self.seed,
+                progress=self.settings.progress and self.ctx.is_main,
+            )
+        except ValueError as error:
+            if stage.variant is None:
+                raise
+            raise ValueError(
+                f"{error} (curriculum stage {stage.name!r}, variant {stage.variant!r}: "
+                f"pass curriculum.stages.{stage.name}.variant=null to train on the pairs as they are)"
+            ) from error
         if self.train_data is None or len(self.train_data) == 0:
             raise ValueError(f"curriculum stage {stage.name!r}: the training split is empty")
         verb = "resuming" if resumed else "entering"

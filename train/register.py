@@ -272,25 +272,12 @@ def _write_outputs(cfg: DictConfig, out_dir: Path, src, tgt, transform: np.ndarr
         plot_registration(src.xyz, tgt.xyz, transform, out_dir / "registration.png", title=Path(cfg.source).name)
 
 
-def _remove_if_empty(folder: Path) -> None:
-    """Remove ``folder`` and its empty parents below the working folder when nothing was written."""
-    stop = Path.cwd().resolve()
-    for path in (folder.resolve(), *folder.resolve().parents):
-        if path == stop or stop not in path.parents or not path.is_dir() or any(path.iterdir()):
-            return
-        path.rmdir()
-
-
 @hydra.main(version_base="1.3", config_path=f"{CONFIG_DIR}/register", config_name="register")
 def _register_app(cfg: DictConfig) -> None:
     out_dir = Path(hydra.core.hydra_config.HydraConfig.get().runtime.output_dir)
     with reported(COMMAND):
-        try:
-            require(cfg, COMMAND, {"source": "a point-cloud file", "target": "a point-cloud file"})
-            result, report = register_files(cfg, out_dir)
-        except BaseException:
-            _remove_if_empty(out_dir)
-            raise
+        require(cfg, COMMAND, {"source": "a point-cloud file", "target": "a point-cloud file"})
+        result, report = register_files(cfg, out_dir)
     np.set_printoptions(precision=6, suppress=True)
     print(f"source -> target transform ({result.seconds:.2f} s):")
     print(result.transformation)

@@ -1,0 +1,20 @@
+"""Which pairs a split holds, as ids that do not depend on the generated points (tests of splits)."""
+
+from __future__ import annotations
+
+from typing import Any
+
+
+def pair_identities(dataset: Any) -> set[tuple[str, Any]]:
+    """``(shape file, view)`` or ``(source frame file, target frame)`` of every pair of a split."""
+    from linereg.datasets.splits import SubsetPairs
+
+    indices = range(len(dataset))
+    if isinstance(dataset, SubsetPairs):
+        dataset, indices = dataset.base, dataset.indices
+    if hasattr(dataset, "pairs"):  # an RGB-D sequence
+        return {(str(dataset.pairs[i][0].depth), dataset.pairs[i][1].number) for i in indices}
+    return {
+        (str(dataset.shapes.items[i // len(dataset.views)][1]), dataset.views[i % len(dataset.views)])
+        for i in indices
+    }

@@ -1,0 +1,70 @@
+"""The generalization splits (``configs/dataset/<split>.yaml``): each builds from the shared data,
+holds no pair of its protocol's training split, changes what it says it changes, and
+``linereg-evaluate`` scores a network on it."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import pytest
+from hydra import compose, initialize_config_dir
+
+from linereg.datasets.splits import build_split
+from linereg.registry import plain
+from linereg.train.evaluate import evaluate
+from tests.pair_identities import pair_identities
+
+ROOT = Path(__file__).resolve().parent.parent
+SPLITS = {  # split -> its protocol
+    "airplane_view_vs_whole": "airplane",
+    "airplane_other_categories": "airplane",
+    "human_view_vs_view": "human",
+    "kinect_frames": "real",
+}
+pytestmark = pytest.mark.shared_data
+
+
+def _compose(name: str, overrides: list[str]):
+    with initialize_config_dir(str(ROOT / "configs"), version_base="1.3"):
+        return compose(name, overrides=[f"paths.root_dir={ROOT}", *overrides])
+
+
+def _split(split: str):
+    """The test split of a generalization split's dataset config, without a cache."""
+    cfg = _compose("evaluate", ["checkpoint=x", f"dataset={split}", "trainer.num_points=256", "dataset.cache_dir=null"])
+    return build_split(plain(cfg.dataset), "test", progress=False)
+
+
+def _protocol(protocol: str, split: str):
+    """``split`` of a protocol's own dataset config, without a cache."""
+    cfg = _compose("train", [f"protocol={protocol}", "experiment=rpm_ours", "dataset.cache_dir=null"])
+    return build_split(plain(cfg.dataset), split, progress=False)
+
+
+@pytest.mark.parametrize("split", sorted(SPLITS))
+def test_a_split_holds_no_training_pair_of_its_protocol(split, shared_data):
+    pairs = pair_identities(_split(split))
+    training = pair_identities(_protocol(SPLITS[split], "train"))
+    assert pairs and not pairs & training
+    if split.startswith("airplane") or split == "kinect_frames":  # other shapes or frames altogether
+        assert not {name for name, _ in pairs} & {name for name, _ in training}
+
+
+def test_the_pair_type_splits_keep_the_protocols_test_views_and_change_the_target(shared_data):
+    for split, protocol in (("airplane_view_vs_whole", "airplane"), ("human_view_vs_view", "human")):
+        changed, own = _split(split), _protocol(protocol, "test")
+        assert pair_identities(changed) == pair_identities(own)
+        assert changed.protocol.target != own.protocol.target, split
+
+
+def test_the_other_categories_are_every_shared_shape_but_the_airplanes(shared_data):
+    names = {Path(name).parent.name for name, _ in pair_identities(_split("airplane_other_categories"))}
+    assert names == {"bottle", "car", "chair", "guitar", "person", "table", "toilet"}
+
+
+def test_linereg_evaluate_scores_a_generalization_split(shared_data, tmp_path):
+    overrides = ["checkpoint=rpm_ours_real", "dataset=kinect_frames", f"output_dir={tmp_path}", "progress=false"]
+    metrics = evaluate(_compose("evaluate", [*overrides, "num_figures=0", "dataset.cache_dir=null"]))
+    assert metrics["num_pairs"] == 4 and metrics["labelled"]
+    assert math.isfinite(metrics["model"]["err_r_deg_mean"]) and metrics["identity"]["err_r_deg_mean"] > 10

@@ -17,7 +17,7 @@ holding the model weights and the run's resolved config only, with its data path
 from __future__ import annotations
 
 import os
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -106,24 +106,30 @@ def is_name(value: Any) -> bool:
     return isinstance(value, str) and value in REGISTRY
 
 
+def _map_strings(value: Any, function: Callable[[str], str]) -> Any:
+    """``value`` (nested mappings and lists) with ``function`` applied to every string."""
+    if isinstance(value, Mapping):
+        return {key: _map_strings(item, function) for key, item in value.items()}
+    if isinstance(value, list):
+        return [_map_strings(item, function) for item in value]
+    return function(value) if isinstance(value, str) else value
+
+
 def portable_config(config: Any, shared_data: str | Path, cache_dir: str | Path) -> Any:
-    """``config`` (nested dicts and lists) with every string under ``shared_data`` or ``cache_dir``
-    rewritten to start with ``${shared_data}`` or ``${cache_dir}``."""
+    """``config`` (nested dicts and lists) with every absolute path under ``shared_data`` or
+    ``cache_dir`` rewritten to start with ``${shared_data}`` or ``${cache_dir}``."""
     prefixes = ((str(Path(shared_data).resolve()), SHARED_DATA), (str(Path(cache_dir).resolve()), CACHE_DIR))
 
-    def rewrite(value: Any) -> Any:
-        if isinstance(value, Mapping):
-            return {key: rewrite(item) for key, item in value.items()}
-        if isinstance(value, list):
-            return [rewrite(item) for item in value]
-        if isinstance(value, str) and os.path.isabs(value):
-            resolved = str(Path(value).resolve())
-            for prefix, marker in prefixes:
-                if resolved == prefix or resolved.startswith(prefix + os.sep):
-                    return marker + resolved[len(prefix) :]
+    def portable(value: str) -> str:
+        if not os.path.isabs(value):
+            return value
+        resolved = str(Path(value).resolve())
+        for prefix, marker in prefixes:
+            if resolved == prefix or resolved.startswith(prefix + os.sep):
+                return marker + resolved[len(prefix) :]
         return value
 
-    return rewrite(config)
+    return _map_strings(config, portable)
 
 
 def local_config(config: Any) -> Any:
@@ -135,15 +141,10 @@ def local_config(config: Any) -> Any:
     shared = shared_data_dir() or Path(os.environ.get("LINEREG_SHARED_DATA") or "shared_data").resolve()
     markers = ((SHARED_DATA, str(shared)), (CACHE_DIR, str(Path("data_cache").resolve())))
 
-    def rewrite(value: Any) -> Any:
-        if isinstance(value, Mapping):
-            return {key: rewrite(item) for key, item in value.items()}
-        if isinstance(value, list):
-            return [rewrite(item) for item in value]
-        if isinstance(value, str):
-            for marker, local in markers:
-                if value.startswith(marker):
-                    return local + value[len(marker) :]
+    def local(value: str) -> str:
+        for marker, folder in markers:
+            if value.startswith(marker):
+                return folder + value[len(marker) :]
         return value
 
-    return rewrite(config)
+    return _map_strings(config, local)

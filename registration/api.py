@@ -157,11 +157,12 @@ class LearnedRegistration:
     def _predict(self, src, tgt, src_normals, tgt_normals) -> MethodResult:
         import torch
 
+        from linereg.datasets.protocol import scale_transform
         from linereg.pointcloud import estimate_normals, fit_into_cube
         from linereg.structures import PairBatch
 
         src_s, tgt_s = fps(src, self.num_points), fps(tgt, self.num_points)
-        center, scale = np.zeros(3), 1.0
+        center, scale = np.zeros(3), 1.0  # half_extent None: the clouds' own units
         clouds = (src_s, tgt_s)
         if self.half_extent is not None:
             clouds, center, scale = fit_into_cube(src_s, tgt_s, half_extent=self.half_extent)
@@ -175,9 +176,8 @@ class LearnedRegistration:
         with torch.no_grad():
             output = self.model(batch)
             chosen, _ = self.iterate.select(output.transforms, batch.src_xyz, batch.tgt_xyz)
-        transform = chosen[0].double().cpu().numpy()
-        rotation = transform[:3, :3]
-        transform[:3, 3] = transform[:3, 3] / scale + center - rotation @ center
+        # back to the original frames: the inverse of x' = (x - c) s is x = (x' + c s) / s
+        transform = scale_transform(chosen[0].double().cpu().numpy(), -center * scale, 1.0 / scale)
         return MethodResult(transform=transform)
 
     def __call__(self, src, tgt, src_normals=None, tgt_normals=None) -> MethodResult:

@@ -64,6 +64,11 @@ class Stage:
         if not self.lr_scale > 0:
             raise ValueError(f"curriculum stage {self.name!r}: lr_scale must be > 0, got {self.lr_scale}")
 
+    @property
+    def without_variant(self) -> str:
+        """The override that trains this stage on the pairs as they are (no dataset variant)."""
+        return f"curriculum.stages.{self.name}.variant=null"
+
     def learning_rate(self, base_lr: float) -> float:
         """The stage's learning rate given ``optimizer.lr``."""
         return (base_lr if self.lr is None else self.lr) * self.lr_scale
@@ -120,7 +125,7 @@ class Curriculum:
         missing = [stage for stage in self.stages if stage.variant is not None and stage.variant not in variants]
         if missing:
             asked = ", ".join(sorted({repr(stage.variant) for stage in missing}))
-            overrides = " ".join(f"curriculum.stages.{stage.name}.variant=null" for stage in missing)
+            overrides = " ".join(stage.without_variant for stage in missing)
             raise ValueError(
                 f"dataset {dataset.get('name')!r} has no variant {asked} (its variants: "
                 f"{', '.join(sorted(variants)) or 'none'}); pass {overrides} to train on the pairs as they are"

@@ -367,8 +367,8 @@ def _write_pairs(evaluation: Evaluation, path: Path) -> None:
                 row += [f"{evaluation.errors[k][i]:.6g}" for k in ERROR_KEYS]
                 row += [f"{evaluation.identity_errors[k][i]:.6g}" for k in ERROR_KEYS]
             if check_keys:
-                check = evaluation.assessments[i]
-                row += [f"{check.fitness:.6g}", f"{check.inlier_rmse:.6g}", str(check.confident).lower()]
+                values = [getattr(evaluation.assessments[i], key) for key in ASSESSMENT_KEYS]
+                row += [str(value).lower() if isinstance(value, bool) else f"{value:.6g}" for value in values]
             writer.writerow(row)
 
 

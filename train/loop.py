@@ -200,7 +200,7 @@ class Trainer:
                 raise
             raise ValueError(
                 f"{error} (curriculum stage {stage.name!r}, variant {stage.variant!r}: "
-                f"pass curriculum.stages.{stage.name}.variant=null to train on the pairs as they are)"
+                f"pass {stage.without_variant} to train on the pairs as they are)"
             ) from error
         if self.train_data is None or len(self.train_data) == 0:
             raise ValueError(f"curriculum stage {stage.name!r}: the training split is empty")

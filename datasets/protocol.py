@@ -51,6 +51,7 @@ from linereg.random_poses import (
 from linereg.se3 import inverse, transform_normals, transform_points
 from linereg.structures import PairSample
 
+TARGETS = ("view", "whole", "mixed")
 MIN_VIEW_POINTS = 32
 WHOLE_MODEL_DIRECTIONS = 26
 WHOLE_MODEL_IMAGE_SIZE = 128
@@ -267,7 +268,9 @@ class ViewProtocol:
 
     Attributes:
         name: preset name recorded in the metadata (``"airplane"``, ``"human"``).
-        target: ``"view"`` (second camera, Airplane) or ``"whole"`` (whole model, Human).
+        target: ``"view"`` (second camera, Airplane), ``"whole"`` (whole model, Human) or
+            ``"mixed"`` (both pair types in one split: a second view at even camera stops, the
+            whole model at odd ones).
         num_views: camera stops per shape (pairs per shape).
         view_axis: orbit axis in shape coordinates (ModelNet resampled and SMPL are y-up).
         elevation_deg: camera elevation above the orbit plane.
@@ -299,8 +302,8 @@ class ViewProtocol:
     normal_k: int = 30
 
     def __post_init__(self) -> None:
-        if self.target not in ("view", "whole"):
-            raise ValueError(f"target must be 'view' or 'whole', got {self.target!r}")
+        if self.target not in TARGETS:
+            raise ValueError(f"target must be one of {TARGETS}, got {self.target!r}")
         if self.normals not in ("estimate", "surface"):
             raise ValueError(f"normals must be 'estimate' or 'surface', got {self.normals!r}")
         if self.num_views < 1:
@@ -317,6 +320,12 @@ class ViewProtocol:
     @property
     def pairs_per_shape(self) -> int:
         return self.num_views
+
+    def target_of(self, view_index: int) -> str:
+        """``"view"`` or ``"whole"``: the target of pair ``view_index`` (``"mixed"`` alternates)."""
+        if self.target != "mixed":
+            return self.target
+        return "view" if view_index % 2 == 0 else "whole"
 
     def camera_pose(self, views: ShapeViews, view_index: int) -> tuple[np.ndarray, np.ndarray]:
         """``(eye, up)`` of camera stop ``view_index`` on the orbit."""
@@ -354,7 +363,8 @@ class ViewProtocol:
             raise ValueError(f"view_index must be in [0, {self.num_views}), got {view_index}")
         eye, up = self.camera_pose(views, view_index)
         src_xyz, src_normals = self._view(views, eye, up, rng)
-        if self.target == "view":
+        target = self.target_of(view_index)
+        if target == "view":
             turn = random_axis_angle_rotation(
                 1,
                 rng,

@@ -14,6 +14,8 @@ Splits: ``split="all"`` keeps everything; ``"train"`` / ``"test"`` follow ``spli
 * ``"views"``: every shape in both splits (the shape sources keep them all), its protocol views
   (camera stops) shuffled with ``split_seed`` and the first ``train_fraction`` of them train
   (held-out views of few shapes; the pair dataset selects them).
+* ``"held_out"`` (mesh folders): the shapes named in ``held_out`` (file stems) are the test split,
+  every other shape is train, with all of their views (e.g. leave one body out).
 """
 
 from __future__ import annotations
@@ -31,7 +33,7 @@ from linereg.datasets.shape_pairs import ShapePairDataset
 from linereg.io import MESH_SUFFIXES, read_mesh, read_point_cloud
 
 SPLITS = ("train", "test", "all")
-SPLIT_RULES = ("official", "random", "views")
+SPLIT_RULES = ("official", "random", "views", "held_out")
 
 # Official ModelNet40 sizes per class (train, test); ids 1..train are train, the rest test.
 MODELNET40_SPLIT_SIZES: dict[str, tuple[int, int]] = {
@@ -97,6 +99,22 @@ def _filter_categories(
     return [item for item in items if item[0] in categories]
 
 
+def _held_out_split(
+    items: list[tuple[str, Path]], split: str, held_out: list[str] | None, where: Path
+) -> list[tuple[str, Path]]:
+    """The ``split`` part of the ``"held_out"`` rule: test = the files whose stem is in ``held_out``,
+    train = the others; ValueError naming a stem that is no file of the folder."""
+    if not held_out:
+        raise ValueError("split_rule='held_out' needs held_out: the file stems of the test shapes")
+    stems = sorted(path.stem for _, path in items)
+    unknown = sorted(set(held_out) - set(stems))
+    if unknown:
+        raise ValueError(f"held_out names {unknown} are no mesh in {where}; its meshes: {stems}")
+    if split == "all":
+        return items
+    return [item for item in items if (item[1].stem in held_out) == (split == "test")]
+
+
 def _list_digest(names: Sequence[str]) -> str:
     """Short hash of a list of names (for cache keys)."""
     return hashlib.sha256("\n".join(names).encode()).hexdigest()[:16]
@@ -109,10 +127,12 @@ class MeshFolderShapes:
         root: the folder (searched recursively).
         categories: keep these categories only (first path component under ``root``).
         split: ``"train"``, ``"test"`` or ``"all"``.
-        split_rule: ``"official"`` (``train/`` and ``test/`` sub-folders) or ``"random"``.
+        split_rule: ``"official"`` (``train/`` and ``test/`` sub-folders), ``"random"`` or
+            ``"held_out"`` (test: the shapes named in ``held_out``; train: the others).
         train_fraction: train share for the random rule.
         split_seed: seed of the random rule.
         max_shapes: use only the first ``max_shapes`` files (sorted) before splitting.
+        held_out: file stems of the test shapes of the ``"held_out"`` rule.
     """
 
     def __init__(
@@ -125,6 +145,7 @@ class MeshFolderShapes:
         train_fraction: float = 0.8,
         split_seed: int = 0,
         max_shapes: int | None = None,
+        held_out: str | Sequence[str] | None = None,
     ) -> None:
         _check_split(split, split_rule, train_fraction)
         self.root = _require_dir(root, "mesh folder")
@@ -140,6 +161,10 @@ class MeshFolderShapes:
             items = [item for item in items if split in item[1].relative_to(self.root).parts[:-1]]
         elif split != "all" and split_rule == "random":
             items = random_split(items, split, train_fraction=train_fraction, split_seed=split_seed)
+        elif split_rule == "held_out":
+            items = _held_out_split(items, split, _as_list(held_out), self.root)
+        elif held_out is not None:
+            raise ValueError(f"held_out={held_out!r} needs split_rule='held_out', got {split_rule!r}")
         if not items:
             raise ValueError(
                 f"no meshes left under {self.root} for categories={categories}, split={split!r} "
@@ -205,6 +230,10 @@ class ModelNet40Shapes:
         file_format: str = "auto",
     ) -> None:
         _check_split(split, split_rule, train_fraction)
+        if split_rule == "held_out":
+            raise ValueError(
+                "split_rule='held_out' is a mesh folder's rule; ModelNet40 takes 'official', 'random' or 'views'"
+            )
         self.root = _require_dir(root, "ModelNet40 folder")
         self.split = split
         if file_format == "auto":
@@ -337,6 +366,7 @@ def build_mesh_folder(
     train_fraction: float = 0.8,
     split_seed: int = 0,
     max_shapes: int | None = None,
+    held_out: str | Sequence[str] | None = None,
     seed: int = 0,
 ) -> ShapePairDataset:
     """Pairs from any folder of meshes (see :class:`MeshFolderShapes` and the protocol)."""
@@ -348,6 +378,7 @@ def build_mesh_folder(
         train_fraction=train_fraction,
         split_seed=split_seed,
         max_shapes=max_shapes,
+        held_out=held_out,
     )
     return _shape_pairs(shapes, protocol, split_rule, train_fraction, split_seed, seed, "mesh_folder")
 

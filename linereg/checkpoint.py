@@ -56,8 +56,7 @@ def find_checkpoint(path: str | Path, prefer: tuple[str, ...] | None = None) -> 
             f"no checkpoint ({' or '.join(dict.fromkeys(prefer))}) in {path} or {path / CHECKPOINT_DIR}"
         )
     raise FileNotFoundError(
-        f"checkpoint not found: {path} (not a file, a run folder or a pretrained name: "
-        f"{', '.join(pretrained.names())})"
+        f"checkpoint not found: {path} (not a file, a run folder or a pretrained name: {', '.join(pretrained.names())})"
     )
 
 

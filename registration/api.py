@@ -232,8 +232,6 @@ def _build(method: Any, device: str | None, options: dict[str, Any]):
     """The method object and a JSON-able description of it."""
     if isinstance(method, Mapping):
         config = {**method, **options}
-    elif method == "default":
-        config = {"name": DEFAULT_METHOD, **options}
     elif isinstance(method, str) and method in METHODS:
         config = {"name": method, **options}
     elif isinstance(method, str | os.PathLike) and (Path(method).expanduser().exists() or pretrained.is_name(method)):
@@ -242,7 +240,7 @@ def _build(method: Any, device: str | None, options: dict[str, Any]):
         return LearnedRegistration(checkpoint, **settings), {"checkpoint": str(method), **options}
     else:
         raise UnknownNameError(
-            f"method={method!r}: not a registered method ({', '.join(['default', *METHODS.names()])}), "
+            f"method={method!r}: not a registered method ({', '.join(METHODS.names())}), "
             f"a pretrained network ({', '.join(pretrained.names())}) nor an existing checkpoint file or run folder"
         )
     if device is not None:
@@ -254,7 +252,7 @@ def register(
     source: Any,
     target: Any,
     init: Any = None,
-    method: str | os.PathLike | Mapping[str, Any] = "default",
+    method: str | os.PathLike | Mapping[str, Any] = DEFAULT_METHOD,
     device: str | None = None,
     *,
     fitness_threshold: float | None = None,
@@ -267,7 +265,7 @@ def register(
             point-cloud files (any format :func:`linereg.io.read_point_cloud` reads).
         init: optional ``(4, 4)`` initial guess (odometry, GNSS) applied to the source first;
             the result includes it.
-        method: ``"default"`` (the robust solver, ``robust``: CPU only), any name in
+        method: ``"robust"`` (the default: the robust solver, CPU only), any other name in
             :data:`linereg.registration.METHODS` (``adam_loss``, ``svd_irls``, ``icp_point``, ...),
             a config ``{name: ..., **options}``, a checkpoint file / run folder of
             ``python -m train`` or a pretrained name of :mod:`linereg.pretrained`

@@ -3,8 +3,8 @@
 No torch on this path (nor Open3D, numba or matplotlib): ``linereg.register`` and the
 ``linereg-register`` command start in about the time numpy and scipy take to import.
 
-1. Both clouds centred (:func:`~linereg.registration.methods.run_centered`) and scaled together
-   into the unit ball; FPS subsets of ``num_points`` for the polish and the selection.
+1. Both clouds centred (as :func:`~linereg.registration.methods.run_centered` centres them) and
+   scaled together into the unit ball; FPS subsets of ``num_points`` for the polish and the selection.
 2. Round 1, coarse: IRLS on CD-W (:func:`~linereg.registration.coarse.cdw_irls`, ``nu = nu0 *
    median`` of the nearest distances, recomputed every step) from every start on small FPS
    subsets, once with both directions and once with the source-to-target term alone (a partial
@@ -25,8 +25,10 @@ No torch on this path (nor Open3D, numba or matplotlib): ``linereg.register`` an
 5. After a doubtful first round on a target with more points than the subset (a scan), the global
    stage replaces rounds 2 and 3 as the next step (:mod:`~linereg.registration.global_stage`): FPFH +
    RANSAC and FGR candidates join, every candidate is polished against a dense target and the
-   lowest dense cost chooses; rounds 2 and 3 follow only while that choice is doubtful, and the
-   choice ends with plane-to-plane steps against the dense target instead of step 6.
+   lowest dense cost chooses; rounds 2 and 3 follow only while that choice is doubtful, their
+   candidates judged the same way, and the choice ends with plane-to-plane steps against the
+   dense target instead of step 6. One flow runs every pair: from this step on, its doubt tests
+   and its final choice read the dense costs.
 6. Fine polish of the chosen pose when the source lies on the target (fitness at least
    ``fine_fitness``): the IRLS goes on to ``fine_end`` times the point spacing
    (:func:`~linereg.registration.welsch.fine_scales`); partly overlapping scans keep the polish's
@@ -35,7 +37,9 @@ No torch on this path (nor Open3D, numba or matplotlib): ``linereg.register`` an
    (:func:`~linereg.registration.planes.plane_to_plane_irls`, Generalized-ICP) remove the
    point-to-point fit's sampling offset.
 
-The settings are :class:`~linereg.registration.robust_options.RobustOptions`, one group per stage.
+The settings are :class:`~linereg.registration.robust_options.RobustOptions`, one group per stage;
+:meth:`RobustRegistration.solve` returns a :class:`~linereg.registration.robust_result.RobustResult`
+(the chosen pose, every candidate with its costs and origin, the steps that ran).
 """
 
 from __future__ import annotations
@@ -45,7 +49,7 @@ import time
 import warnings
 from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -55,7 +59,7 @@ from linereg.knn import NearestNeighbors
 from linereg.registration.coarse import cdw_adam, cdw_irls
 from linereg.registration.evaluation import point_spacing
 from linereg.registration.global_stage import DenseTarget, dense_confident, dense_costs, dense_polish, dense_target
-from linereg.registration.methods import METHODS, MethodResult, run_centered
+from linereg.registration.methods import METHODS, MethodResult, translation
 from linereg.registration.planes import plane_to_plane_irls, surface_covariances
 from linereg.registration.poses import (
     Poses,
@@ -68,15 +72,14 @@ from linereg.registration.poses import (
     spread_rotations,
 )
 from linereg.registration.robust_options import RobustOptions, SelectOptions, robust_options
+from linereg.registration.robust_result import GLOBAL, STAGES, Candidate, RobustResult, Step
 from linereg.registration.search import pose_search
 from linereg.registration.welsch import fine_scales, fixed_scale_cost, polish_scales, welsch_irls
 
-__all__ = ["RobustOptions", "RobustRegistration", "degeneracy", "doubt"]
+__all__ = ["RobustOptions", "RobustRegistration", "RobustResult", "degeneracy", "doubt"]
 
 PROGRESS_AFTER = 1.0
 """Seconds into a registration after which ``progress=True`` prints each stage as it starts."""
-ROUND_NAMES = {2: "Adam on CD-W", 3: "pose search"}
-"""What rounds 2 and 3 run, for the progress lines."""
 
 
 def degeneracy(points: np.ndarray, name: str) -> str | None:
@@ -149,23 +152,76 @@ class _Pair:
     inlier_distance: float
 
 
+@dataclass(frozen=True)
+class _Pool:
+    """``K`` candidates in the solver's frame and where each came from: ``(round, origin, start)``
+    (:class:`~linereg.registration.robust_result.Candidate`)."""
+
+    poses: Poses
+    origins: tuple[tuple[int, str, int], ...]
+
+    def joined(self, other: _Pool) -> _Pool:
+        """The candidates of ``self`` then ``other``."""
+        poses = np.concatenate([self.poses[0], other.poses[0]]), np.concatenate([self.poses[1], other.poses[1]])
+        return _Pool(poses, self.origins + other.origins)
+
+    def taken(self, indices: np.ndarray) -> _Pool:
+        """The candidates at ``indices``, in that order."""
+        return _Pool((self.poses[0][indices], self.poses[1][indices]), tuple(self.origins[k] for k in indices))
+
+
+class _Verdict(NamedTuple):
+    """The doubt test of the best candidate: :func:`doubt`, or :func:`_dense_doubt` (``fitness`` ``None``)."""
+
+    doubtful: bool
+    margin: float
+    fitness: float | None
+
+
+@dataclass(frozen=True)
+class _Choice:
+    """The candidates left when the rounds end and the one chosen.
+
+    Attributes:
+        pool: the candidates; costs: ``(K,)`` the costs the doubt test judges by; ranking:
+            ``(K,)`` the values the choice ranked by.
+        best: the index of the chosen one; selection: ``"fixed"``, ``"polish"`` or ``"dense"``.
+        verdict: the doubt test of that choice.
+        history: every step that ran.
+        dense: the dense target, when the dense judgement chose.
+    """
+
+    pool: _Pool
+    costs: np.ndarray
+    ranking: np.ndarray
+    best: int
+    selection: str
+    verdict: _Verdict
+    history: tuple[Step, ...]
+    dense: DenseTarget | None
+
+
 class RobustRegistration:
     """The ``register`` default (numpy/scipy): multi-start IRLS on CD-W, Welsch IRLS polish,
     fixed-scale selection; when doubtful, Adam on CD-W, then a pose search (module docstring).
 
-    The result's ``info`` holds ``converged`` (the final choice is not doubtful), ``confidence``
-    (``1 - best cost / cost of the best distinct basin``, by the cost that chose it; 1 without a
-    rival), ``rounds``, ``starts`` (coarse candidates of all rounds: starts x coarse sides),
-    ``candidates`` (those polished: not merged), the chosen pose's ``cost`` at ``select_nu``,
-    ``selection`` (``"fixed"``, or ``"polish"`` after a doubtful first round:
-    ``doubtful_select``), ``fine`` (the chosen pose got the fine polish), ``coincident`` (after
-    it: the share of source points on a target point; ``None`` without it), ``plane`` (the
-    plane-to-plane steps ran) and ``warnings`` (collinear clouds). :func:`linereg.register` adds
-    ``fitness`` and ``inlier_rmse``.
+    :meth:`solve` returns a :class:`~linereg.registration.robust_result.RobustResult`; calling the
+    method returns a :class:`~linereg.registration.methods.MethodResult` whose ``info`` is
+    :attr:`RobustResult.info <linereg.registration.robust_result.RobustResult.info>`:
+    ``doubtful`` (the final choice fails the doubt test), ``margin`` (``1 - best cost / cost of
+    the best distinct rival``, by the cost that chose; 1 without a rival), ``global_candidates``
+    (FPFH + RANSAC and FGR candidates found; 0 when that stage did not run), ``cost`` (the chosen
+    candidate's cost: at ``select_nu``, or the dense cost), ``rounds``, ``starts`` (coarse
+    candidates of all rounds: starts x coarse sides, searched poses), ``candidates`` (those left
+    at the end), ``selection`` (``"fixed"``; ``"polish"`` after a doubtful first round:
+    ``doubtful_select``; ``"dense"``), ``fine`` (the chosen pose got the fine polish),
+    ``coincident`` (the share of source points on a target point before the plane-to-plane
+    steps; ``None`` without that test), ``plane`` (the plane-to-plane steps ran) and
+    ``warnings`` (collinear clouds). :func:`linereg.register` adds ``fitness`` and ``inlier_rmse``.
 
     Args:
         options: :class:`~linereg.registration.robust_options.RobustOptions` or a mapping of its
-            flat keys (:data:`~linereg.registration.robust_options.FLAT_KEYS`).
+            flat names (:data:`~linereg.registration.robust_options.FLAT_KEYS`) and groups.
         num_points: FPS size of each cloud for the polish and the selection.
         device: ``"cpu"`` only: the stages are numpy and scipy.
         center: register centred clouds.
@@ -201,14 +257,59 @@ class RobustRegistration:
             print(f"register: {elapsed:4.1f} s  {text}", file=sys.stderr, flush=True)
 
     def __call__(self, src, tgt, src_normals=None, tgt_normals=None) -> MethodResult:
-        """Register ``src (N, 3)`` onto ``tgt (M, 3)``."""
+        """Register ``src (N, 3)`` onto ``tgt (M, 3)`` (normals unused): :meth:`solve` as a method result."""
+        result = self.solve(src, tgt)
+        return MethodResult(transform=result.transform, seconds=result.seconds, info=result.info)
+
+    def solve(self, src, tgt) -> RobustResult:
+        """Register ``src (N, 3)`` onto ``tgt (M, 3)``: both clouds centred (``center``) and scaled
+        into the unit ball, the rounds, the final steps, and every pose mapped back to the input frames.
+
+        Raises:
+            ValueError: a malformed cloud, or one whose points all coincide (naming it).
+        """
         check_points(src, "source", batched=False)
         check_points(tgt, "target", batched=False)
-        notes = [note for note in (degeneracy(src, "source"), degeneracy(tgt, "target")) if note is not None]
+        notes = tuple(note for note in (degeneracy(src, "source"), degeneracy(tgt, "target")) if note is not None)
         for note in notes:
             warnings.warn(note, stacklevel=2)
-        result = run_centered(self._solve, src, tgt, center=self.center)
-        return MethodResult(transform=result.transform, seconds=result.seconds, info={**result.info, "warnings": notes})
+        src, tgt = np.asarray(src, dtype=np.float64), np.asarray(tgt, dtype=np.float64)
+        c_src = src.mean(axis=0) if self.center else np.zeros(3)
+        c_tgt = tgt.mean(axis=0) if self.center else np.zeros(3)
+        self._started = time.perf_counter()
+        pair, radius = self._pair(src - c_src, tgt - c_tgt)
+        choice = self._choose(pair)
+        best, poses = choice.best, choice.pool.poses
+        chosen, fine, coincident, plane = self._finish(
+            (poses[0][best : best + 1], poses[1][best : best + 1]), choice, pair
+        )
+        seconds = time.perf_counter() - self._started
+
+        def to_input(matrix: np.ndarray) -> np.ndarray:
+            """A ``(4, 4)`` pose of the solver's frame as the transform between the input clouds."""
+            matrix[:3, 3] *= radius
+            return translation(c_tgt) @ matrix @ translation(-c_src)
+
+        candidates = tuple(
+            Candidate(to_input(matrix), float(cost), float(value), *origin)
+            for matrix, cost, value, origin in zip(
+                as_matrices(choice.pool.poses), choice.costs, choice.ranking, choice.pool.origins, strict=True
+            )
+        )
+        return RobustResult(
+            transform=to_input(as_matrices(chosen)[0]),
+            candidates=candidates,
+            chosen=choice.best,
+            selection=choice.selection,
+            doubtful=choice.verdict.doubtful,
+            margin=choice.verdict.margin,
+            history=choice.history,
+            fine=fine,
+            coincident=coincident,
+            plane=plane,
+            warnings=notes,
+            seconds=seconds,
+        )
 
     def _pair(self, src: np.ndarray, tgt: np.ndarray) -> tuple[_Pair, float]:
         """The scaled pair and the scale (the radius of the unit ball in input units)."""
@@ -232,9 +333,82 @@ class RobustRegistration:
         )
         return pair, radius
 
-    def _round(self, number: int, pair: _Pair) -> tuple[Poses, np.ndarray, int]:
+    def _choose(self, pair: _Pair) -> _Choice:
+        """Rounds until the choice is not doubtful (or ``rounds`` ran). After a doubtful first round
+        on a target with more points than the subset (a scan), the global candidates join and the
+        dense judgement replaces the selection cost for every later step (module docstring, 4-5)."""
+        select = self.options.select
+        pool, costs, starts = self._next_round(1, pair)
+        verdict = self._verdict(pool, costs, pair, None)
+        history = [Step(1, STAGES[1], starts, len(pool.origins), "fixed", verdict.doubtful, verdict.margin)]
+        dense = None
+        if (
+            verdict.doubtful
+            and self.options.global_stage.candidates == "doubtful"
+            and len(pair.tgt_whole) > len(pair.tgt)
+        ):
+            self._stage("first round doubtful: FPFH + RANSAC and FGR candidates")
+            finest = float(pair.nus[-1]) if len(pair.nus) else np.inf
+            dense = dense_target(pair.tgt_whole, self.options.global_stage, finest)
+            found = self._global_round(pair, dense)
+            self._stage(f"dense judgement of {len(pool.origins) + len(found.origins)} candidates")
+            pool, costs = self._judge(pool.joined(found), pair, dense)
+            verdict = self._verdict(pool, costs, pair, dense)
+            history.append(Step(1, GLOBAL, 0, len(found.origins), "dense", verdict.doubtful, verdict.margin))
+        rounds = 1
+        while verdict.doubtful and rounds < select.rounds:
+            rounds += 1
+            self._stage(f"{'doubtful' if dense is None else 'still doubtful'}: round {rounds} ({STAGES[rounds]})")
+            more, more_costs, starts = self._next_round(rounds, pair)
+            pool = pool.joined(more)
+            if dense is None:
+                costs = np.concatenate([costs, more_costs])
+            else:
+                pool, costs = self._judge(pool, pair, dense)
+            verdict = self._verdict(pool, costs, pair, dense)
+            judgement = "fixed" if dense is None else "dense"
+            history.append(
+                Step(rounds, STAGES[rounds], starts, len(more.origins), judgement, verdict.doubtful, verdict.margin)
+            )
+        return self._select(pool, costs, verdict, tuple(history), pair, dense)
+
+    def _select(
+        self,
+        pool: _Pool,
+        costs: np.ndarray,
+        verdict: _Verdict,
+        history: tuple[Step, ...],
+        pair: _Pair,
+        dense: DenseTarget | None,
+    ) -> _Choice:
+        """The final choice: the lowest cost (``"fixed"``, ``"dense"``), or after doubtful local
+        rounds the lowest polish objective (``"polish"``: ``doubtful_select``), judged again."""
+        select = self.options.select
+        best, selection, ranking = int(costs.argmin()), "fixed" if dense is None else "dense", costs
+        if dense is None and history[-1].round > 1 and select.doubtful == "polish" and len(pair.nus):
+            ranking = fixed_scale_cost(pool.poses, pair.src, pair.tgt_index, float(pair.nus[-1]))
+            best, selection = int(ranking.argmin()), "polish"
+            judged = doubt(select, pool.poses, costs, pair.src, pair.tgt_index, pair.inlier_distance, best, ranking)
+            verdict = _Verdict(*judged)
+        return _Choice(pool, costs, ranking, best, selection, verdict, history, dense)
+
+    def _verdict(self, pool: _Pool, costs: np.ndarray, pair: _Pair, dense: DenseTarget | None) -> _Verdict:
+        """The doubt test of the lowest cost: :func:`doubt`, or :func:`_dense_doubt` after the dense judgement."""
+        select = self.options.select
+        if dense is None:
+            return _Verdict(*doubt(select, pool.poses, costs, pair.src, pair.tgt_index, pair.inlier_distance))
+        return _Verdict(*_dense_doubt(select, pool.poses, costs, pair.src, dense), None)
+
+    def _next_round(self, number: int, pair: _Pair) -> tuple[_Pool, np.ndarray, int]:
+        """Round ``number`` (:meth:`_round`): its candidates with their origins, their costs ``(K,)``
+        and the number of coarse candidates it ran."""
+        poses, costs, merged = self._round(number, pair)
+        origin = "search" if number == 3 else "start"
+        return _Pool(poses, tuple((number, origin, int(k)) for k in np.flatnonzero(~merged))), costs, len(merged)
+
+    def _round(self, number: int, pair: _Pair) -> tuple[Poses, np.ndarray, np.ndarray]:
         """Round ``number`` (1, 2, 3): coarse stage from its starts, then the polish: candidates,
-        their costs ``(K,)`` and the number of coarse candidates."""
+        their costs ``(K,)`` and which coarse candidates merged into an earlier one ``(S,)`` (dropped)."""
         coarse = self.options.coarse
         if number == 3:
             initial, sides = self._searched_poses(pair)
@@ -251,7 +425,7 @@ class RobustRegistration:
             poses, merged = cdw_irls(initial, *shared, coarse.steps, merge_distance=coarse.merge_distance)
         kept = (poses[0][~merged], poses[1][~merged])
         poses = welsch_irls(kept, pair.src, pair.tgt_index, pair.nus, self.options.polish.settle)
-        return poses, fixed_scale_cost(poses, pair.src, pair.tgt_index, self.options.select.nu), len(sides)
+        return poses, fixed_scale_cost(poses, pair.src, pair.tgt_index, self.options.select.nu), merged
 
     def _searched_poses(self, pair: _Pair) -> tuple[Poses, np.ndarray]:
         """The third round's starts: the best distinct poses of the pose search, each with the
@@ -270,33 +444,7 @@ class RobustRegistration:
         best = distinct_best(rotations, costs, search.keep, self.options.select.distinct_deg)
         return (rotations[best], translations[best]), np.zeros(len(best), dtype=bool)
 
-    def _rounds(self, pair: _Pair) -> tuple[Poses, np.ndarray, dict[str, Any]]:
-        """Rounds until a choice is not doubtful (or ``rounds`` ran): every candidate, their
-        costs and the final choice (``best``, ``doubtful``, ``confidence``, ``fitness``, ...)."""
-        select = self.options.select
-        poses, costs, starts = self._round(1, pair)
-        doubtful, confidence, fitness = doubt(select, poses, costs, pair.src, pair.tgt_index, pair.inlier_distance)
-        if doubtful and self.options.global_stage.candidates == "doubtful" and len(pair.tgt_whole) > len(pair.tgt):
-            return self._judged_rounds(pair, poses, starts)
-        rounds = 1
-        while doubtful and rounds < select.rounds:
-            rounds += 1
-            self._stage(f"doubtful: round {rounds} ({ROUND_NAMES[rounds]})")
-            more, more_costs, more_starts = self._round(rounds, pair)
-            poses = _joined(poses, more)
-            costs, starts = np.concatenate([costs, more_costs]), starts + more_starts
-            doubtful, confidence, fitness = doubt(select, poses, costs, pair.src, pair.tgt_index, pair.inlier_distance)
-        best, selection = int(costs.argmin()), "fixed"
-        if rounds > 1 and select.doubtful == "polish" and len(pair.nus):
-            ranking = fixed_scale_cost(poses, pair.src, pair.tgt_index, float(pair.nus[-1]))
-            best, selection = int(ranking.argmin()), "polish"
-            doubtful, confidence, fitness = doubt(
-                select, poses, costs, pair.src, pair.tgt_index, pair.inlier_distance, best=best, ranking=ranking
-            )
-        choice = {"best": best, "selection": selection, "doubtful": doubtful, "confidence": confidence}
-        return poses, costs, {**choice, "fitness": fitness, "rounds": rounds, "starts": starts}
-
-    def _global_round(self, pair: _Pair, dense: DenseTarget) -> Poses:
+    def _global_round(self, pair: _Pair, dense: DenseTarget) -> _Pool:
         """FPFH + RANSAC and FGR candidates from ``dense_points`` FPS points of each cloud, each with the polish."""
         from linereg.registration.features import FeatureOptions, global_candidates
 
@@ -304,64 +452,39 @@ class RobustRegistration:
         src = fps(pair.src_whole, settings.dense_points)
         found, _ = global_candidates(src, dense.points, FeatureOptions(points=settings.feature_points))
         poses = (found[:, :3, :3].copy(), found[:, :3, 3].copy())
-        return welsch_irls(poses, pair.src, pair.tgt_index, pair.nus, self.options.polish.settle)
+        poses = welsch_irls(poses, pair.src, pair.tgt_index, pair.nus, self.options.polish.settle)
+        return _Pool(poses, tuple((1, "global", k) for k in range(len(found))))
 
-    def _judged_rounds(self, pair: _Pair, poses: Poses, starts: int) -> tuple[Poses, np.ndarray, dict[str, Any]]:
-        """After a doubtful first round: the global candidates join and the dense judgement chooses
-        (:meth:`_judge`); rounds 2 and 3 of the local stages add theirs while the choice stays
-        doubtful (:func:`_dense_doubt`)."""
-        select = self.options.select
-        self._stage("first round doubtful: FPFH + RANSAC and FGR candidates")
-        dense = dense_target(
-            pair.tgt_whole, self.options.global_stage, float(pair.nus[-1]) if len(pair.nus) else np.inf
-        )
-        found = self._global_round(pair, dense)
-        self._stage(f"dense judgement of {len(poses[0]) + len(found[0])} candidates")
-        poses, costs = self._judge(_joined(poses, found), pair, dense)
-        rounds = 1
-        doubtful, margin = _dense_doubt(select, poses, costs, pair.src, dense)
-        while doubtful and rounds < select.rounds:
-            rounds += 1
-            self._stage(f"still doubtful: round {rounds} ({ROUND_NAMES[rounds]})")
-            more, _, more_starts = self._round(rounds, pair)
-            poses, costs = self._judge(_joined(poses, more), pair, dense)
-            starts += more_starts
-            doubtful, margin = _dense_doubt(select, poses, costs, pair.src, dense)
-        choice = {"best": int(costs.argmin()), "selection": "dense", "doubtful": doubtful, "confidence": margin}
-        return poses, costs, {**choice, "rounds": rounds, "starts": starts, "global": len(found[0]), "dense": dense}
-
-    def _judge(self, poses: Poses, pair: _Pair, dense: DenseTarget) -> tuple[Poses, np.ndarray]:
+    def _judge(self, pool: _Pool, pair: _Pair, dense: DenseTarget) -> tuple[_Pool, np.ndarray]:
         """The ``dense_keep`` distinct candidates of lowest dense cost, after the dense polish, and
         their dense costs (:mod:`~linereg.registration.global_stage`)."""
         settings = self.options.global_stage
-        order = np.argsort(dense_costs(poses, pair.src, dense), kind="stable")
-        poses = (poses[0][order], poses[1][order])
-        none = np.zeros(len(order), dtype=bool)
-        kept = np.flatnonzero(~merged_into_earlier(poses, none, none, self.options.coarse.merge_distance))
-        kept = kept[: settings.dense_keep]
-        poses = dense_polish((poses[0][kept], poses[1][kept]), pair.src, dense, settings)
-        return poses, dense_costs(poses, pair.src, dense)
+        pool = pool.taken(np.argsort(dense_costs(pool.poses, pair.src, dense), kind="stable"))
+        none = np.zeros(len(pool.origins), dtype=bool)
+        kept = np.flatnonzero(~merged_into_earlier(pool.poses, none, none, self.options.coarse.merge_distance))
+        pool = pool.taken(kept[: settings.dense_keep])
+        pool = _Pool(dense_polish(pool.poses, pair.src, dense, settings), pool.origins)
+        return pool, dense_costs(pool.poses, pair.src, dense)
 
-    def _finish(self, chosen: Poses, fitness: float, pair: _Pair) -> tuple[Poses, dict[str, Any]]:
-        """The fine polish and the plane-to-plane steps of the chosen pose, where they apply."""
+    def _finish(self, chosen: Poses, choice: _Choice, pair: _Pair) -> tuple[Poses, bool, float | None, bool]:
+        """The fine polish and the plane-to-plane steps of the chosen pose, where they apply: the
+        pose, ``fine``, ``coincident`` and ``plane``. After the dense judgement there is no fine
+        polish, and the plane-to-plane steps run against the dense target, ``dense_plane`` times wider."""
         options = self.options
-        fine_nus = fine_scales(options.polish, pair.spacing)
-        fine = fitness >= options.polish.fine_fitness and len(fine_nus) > 0
-        if fine:
-            chosen = welsch_irls(chosen, pair.src, pair.tgt_index, fine_nus, options.polish.settle)
-        coincident, plane = None, False
-        if fine and options.plane.steps > 0:
-            chosen, coincident, plane = self._plane_steps(chosen, pair.src, pair.tgt, pair.tgt_index, pair.spacing)
-        return chosen, {"fine": fine, "coincident": coincident, "plane": plane}
-
-    def _dense_finish(self, chosen: Poses, pair: _Pair, dense: DenseTarget) -> tuple[Poses, dict[str, Any]]:
-        """The plane-to-plane steps of the chosen pose against the dense target, at
-        ``dense_plane`` times the scale of :meth:`_finish` (:meth:`_plane_steps`)."""
-        if self.options.plane.steps == 0:
-            return chosen, {"fine": False, "coincident": None, "plane": False}
-        widen = self.options.global_stage.dense_plane
-        chosen, coincident, plane = self._plane_steps(chosen, pair.src, dense.points, dense.index, dense.spacing, widen)
-        return chosen, {"fine": False, "coincident": coincident, "plane": plane}
+        if choice.dense is None:
+            fine_nus = fine_scales(options.polish, pair.spacing)
+            fine = choice.verdict.fitness >= options.polish.fine_fitness and len(fine_nus) > 0
+            if fine:
+                chosen = welsch_irls(chosen, pair.src, pair.tgt_index, fine_nus, options.polish.settle)
+            target = (pair.tgt, pair.tgt_index, pair.spacing, 1.0)
+        else:
+            fine = False
+            dense = choice.dense
+            target = (dense.points, dense.index, dense.spacing, options.global_stage.dense_plane)
+        if (fine or choice.dense is not None) and options.plane.steps > 0:
+            chosen, coincident, plane = self._plane_steps(chosen, pair.src, *target)
+            return chosen, fine, coincident, plane
+        return chosen, fine, None, False
 
     def _plane_steps(
         self,
@@ -370,7 +493,7 @@ class RobustRegistration:
         tgt: np.ndarray,
         tgt_index: NearestNeighbors,
         spacing: float,
-        widen: float = 1.0,
+        widen: float,
     ) -> tuple[Poses, float, bool]:
         """Plane-to-plane steps of ``chosen`` (``plane_nu * widen`` spacings) when the clouds are
         independent samplings of the surface: fewer than ``coincident_share`` of the source points
@@ -393,36 +516,6 @@ class RobustRegistration:
             plane.steps,
         )
         return chosen, coincident, True
-
-    def _solve(self, src, tgt, src_normals, tgt_normals) -> MethodResult:
-        self._started = time.perf_counter()
-        pair, radius = self._pair(src, tgt)
-        poses, costs, choice = self._rounds(pair)
-        best = choice["best"]
-        chosen = (poses[0][best : best + 1], poses[1][best : best + 1])
-        if choice["selection"] == "dense":
-            chosen, finish = self._dense_finish(chosen, pair, choice["dense"])
-        else:
-            chosen, finish = self._finish(chosen, choice["fitness"], pair)
-        transform = as_matrices(chosen)[0]
-        transform[:3, 3] *= radius
-        info = {
-            "doubtful": choice["doubtful"],
-            "margin": choice["confidence"],
-            "global_candidates": choice.get("global", 0),
-            "cost": float(costs[best]),
-            "rounds": choice["rounds"],
-            "starts": choice["starts"],
-            "candidates": len(costs),
-            "selection": choice["selection"],
-            **finish,
-        }
-        return MethodResult(transform=transform, info=info)
-
-
-def _joined(first: Poses, second: Poses) -> Poses:
-    """The candidates of ``first`` then ``second``."""
-    return np.concatenate([first[0], second[0]]), np.concatenate([first[1], second[1]])
 
 
 def _dense_doubt(

@@ -1,79 +1,57 @@
 """Settings of the ``register`` default, one frozen group per stage (as Open3D's option objects).
 
 :class:`RobustOptions` composes :class:`CoarseOptions`, :class:`PolishOptions`,
-:class:`PlaneOptions`, :class:`SelectOptions` and :class:`SearchOptions`. Lengths are in the unit
-ball of the centred pair unless a field says "target point spacings". Users pass the settings as
-one flat mapping, ``register(a, b, options={"starts": 7, "polish_steps": 30})`` or
-``linereg-register ... robust.starts=7``; :data:`FLAT_KEYS` maps each flat key to its group's
-field (a group's mapping, ``{"polish": {"steps": 30}}``, works as well).
+:class:`PlaneOptions`, :class:`SelectOptions`, :class:`SearchOptions` and :class:`GlobalOptions`.
+Lengths are in the unit ball of the centred pair unless a field says "target point spacings".
+Users pass the settings as one flat mapping, ``register(a, b, options={"starts": 7,
+"polish_steps": 30})`` or ``linereg-register source=a.ply target=b.ply +robust.starts=7`` (the
+command's ``robust`` mapping starts empty, hence the ``+``), or by group, ``{"polish": {"steps": 30}}``.
+
+Each field has one flat name, derived from the dataclasses (:func:`flat_name`; all of them in
+:data:`FLAT_KEYS`):
+
+* a compound field name is its own flat name: ``explore_steps``, ``merge_distance``, ``fine_end``,
+  ``coincident_share``, ``min_fitness``, ``feature_points``, ``dense_keep``;
+* a one-word field name takes its group's ``prefix``: ``coarse_points``, ``polish_steps``,
+  ``plane_nu``, ``select_nu``, ``search_radius``, ``global_candidates``;
+* a field whose metadata gives a flat name (:data:`FLAT`) takes that one: ``starts`` and ``rounds``
+  (the settings most often changed, kept short) and ``doubtful_select`` (``SelectOptions.doubtful``).
+
+Two fields, or a field and a group, with one flat name fail the import.
 """
 
 from __future__ import annotations
 
 from collections.abc import Mapping
 from dataclasses import dataclass, field, fields
-from typing import Any, ClassVar
+from typing import Any, ClassVar, get_type_hints
 
 from linereg.registration.poses import axis_rotations
 
-FLAT_KEYS: dict[str, tuple[str, str]] = {
-    "starts": ("coarse", "starts"),
-    "coarse_points": ("coarse", "points"),
-    "coarse_sides": ("coarse", "sides"),
-    "coarse_nu0": ("coarse", "nu0"),
-    "coarse_steps": ("coarse", "steps"),
-    "explore_steps": ("coarse", "explore_steps"),
-    "explore_lr": ("coarse", "explore_lr"),
-    "merge_distance": ("coarse", "merge_distance"),
-    "polish_steps": ("polish", "steps"),
-    "polish_nu": ("polish", "nu"),
-    "polish_end": ("polish", "end"),
-    "polish_settle": ("polish", "settle"),
-    "fine_end": ("polish", "fine_end"),
-    "fine_fitness": ("polish", "fine_fitness"),
-    "plane_steps": ("plane", "steps"),
-    "plane_nu": ("plane", "nu"),
-    "plane_neighbours": ("plane", "neighbours"),
-    "plane_epsilon": ("plane", "epsilon"),
-    "coincident_distance": ("plane", "coincident_distance"),
-    "coincident_share": ("plane", "coincident_share"),
-    "select_nu": ("select", "nu"),
-    "doubtful_select": ("select", "doubtful"),
-    "doubt_ratio": ("select", "doubt_ratio"),
-    "distinct_deg": ("select", "distinct_deg"),
-    "max_cost": ("select", "max_cost"),
-    "min_fitness": ("select", "min_fitness"),
-    "fitness_spacings": ("select", "fitness_spacings"),
-    "rounds": ("select", "rounds"),
-    "search_rotations": ("search", "rotations"),
-    "search_radius": ("search", "radius"),
-    "search_spacing": ("search", "spacing"),
-    "search_points": ("search", "points"),
-    "search_nu": ("search", "nu"),
-    "search_cell": ("search", "cell"),
-    "search_keep": ("search", "keep"),
-    "global_candidates": ("global_stage", "candidates"),
-    "feature_points": ("global_stage", "feature_points"),
-    "dense_points": ("global_stage", "dense_points"),
-    "dense_keep": ("global_stage", "dense_keep"),
-    "dense_start": ("global_stage", "dense_start"),
-    "dense_steps": ("global_stage", "dense_steps"),
-    "dense_end": ("global_stage", "dense_end"),
-    "dense_settle": ("global_stage", "dense_settle"),
-    "dense_plane": ("global_stage", "dense_plane"),
-}
-"""The flat key of every setting: ``{flat key: (group, field)}``."""
+FLAT = "flat"
+"""The field metadata key that names a field's flat name (:func:`flat_name`)."""
 
-_FLAT_NAMES = {place: key for key, place in FLAT_KEYS.items()}
+
+def _flat(default: Any, name: str) -> Any:
+    """A field with ``default`` whose flat name is ``name`` (:func:`flat_name`)."""
+    return field(default=default, metadata={FLAT: name})
+
+
+def flat_name(group: type, name: str) -> str:
+    """The flat name of field ``name`` of the option group ``group`` (the rule of the module docstring)."""
+    metadata = next(spec.metadata for spec in fields(group) if spec.name == name)
+    if FLAT in metadata:
+        return metadata[FLAT]
+    return name if "_" in name else f"{group.prefix}_{name}"
 
 
 class _Checked:
-    """Range checks whose messages name the flat key a user passes."""
+    """Range checks whose messages name the flat name a user passes."""
 
-    group: ClassVar[str]
+    prefix: ClassVar[str]
 
     def _name(self, name: str) -> str:
-        return _FLAT_NAMES[(self.group, name)]
+        return flat_name(type(self), name)
 
     def _require(self, positive: tuple[str, ...] = (), non_negative: tuple[str, ...] = (), unit=()) -> None:
         for name in positive:
@@ -104,8 +82,8 @@ class CoarseOptions(_Checked):
             one with the same coarse loss stop and are not polished.
     """
 
-    group: ClassVar[str] = "coarse"
-    starts: int = 4
+    prefix: ClassVar[str] = "coarse"
+    starts: int = _flat(4, "starts")
     points: int = 256
     sides: tuple[str, ...] = ("both", "source")
     nu0: float = 2.0
@@ -118,7 +96,8 @@ class CoarseOptions(_Checked):
         self._require(("points", "nu0", "explore_lr"), ("steps", "explore_steps", "merge_distance"))
         sides = tuple(self.sides)
         if not sides or set(sides) - {"both", "source"} or len(set(sides)) < len(sides):
-            raise ValueError(f"coarse_sides must be distinct entries of 'both' and 'source', got {self.sides!r}")
+            message = "must be distinct entries of 'both' and 'source'"
+            raise ValueError(f"{self._name('sides')} {message}, got {self.sides!r}")
         object.__setattr__(self, "sides", sides)
         axis_rotations(self.starts)
 
@@ -139,7 +118,7 @@ class PolishOptions(_Checked):
         fine_fitness: that fitness, within ``fitness_spacings`` target point spacings.
     """
 
-    group: ClassVar[str] = "polish"
+    prefix: ClassVar[str] = "polish"
     steps: int = 20
     nu: float = 0.05
     end: float = 0.3
@@ -168,7 +147,7 @@ class PlaneOptions(_Checked):
         coincident_distance, coincident_share: that test.
     """
 
-    group: ClassVar[str] = "plane"
+    prefix: ClassVar[str] = "plane"
     steps: int = 10
     nu: float = 1.0
     neighbours: int = 10
@@ -179,7 +158,7 @@ class PlaneOptions(_Checked):
     def __post_init__(self) -> None:
         self._require(("nu", "epsilon", "coincident_distance"), ("steps",), ("coincident_share",))
         if self.neighbours < 3:
-            raise ValueError(f"plane_neighbours must be >= 3 (a plane needs 3 points), got {self.neighbours}")
+            raise ValueError(f"{self._name('neighbours')} must be >= 3 (a plane needs 3 points), got {self.neighbours}")
 
 
 @dataclass(frozen=True)
@@ -204,24 +183,24 @@ class SelectOptions(_Checked):
         rounds: most rounds (1..3).
     """
 
-    group: ClassVar[str] = "select"
+    prefix: ClassVar[str] = "select"
     nu: float = 0.03
-    doubtful: str = "polish"
+    doubtful: str = _flat("polish", "doubtful_select")
     doubt_ratio: float = 1.25
     distinct_deg: float = 10.0
     max_cost: float = 0.5
     min_fitness: float = 0.985
     fitness_spacings: float = 3.0
-    rounds: int = 3
+    rounds: int = _flat(3, "rounds")
 
     def __post_init__(self) -> None:
         self._require(("nu", "distinct_deg", "max_cost", "fitness_spacings"), unit=("min_fitness",))
         if self.doubt_ratio < 1:
-            raise ValueError(f"doubt_ratio must be >= 1, got {self.doubt_ratio}")
+            raise ValueError(f"{self._name('doubt_ratio')} must be >= 1, got {self.doubt_ratio}")
         if self.doubtful not in ("polish", "fixed"):
-            raise ValueError(f"doubtful_select must be 'polish' or 'fixed', got {self.doubtful!r}")
+            raise ValueError(f"{self._name('doubtful')} must be 'polish' or 'fixed', got {self.doubtful!r}")
         if self.rounds not in (1, 2, 3):
-            raise ValueError(f"rounds must be 1, 2 or 3, got {self.rounds}")
+            raise ValueError(f"{self._name('rounds')} must be 1, 2 or 3, got {self.rounds}")
 
 
 @dataclass(frozen=True)
@@ -236,7 +215,7 @@ class SearchOptions(_Checked):
         keep: best distinct poses (``distinct_deg`` apart) from which the one-sided coarse IRLS runs.
     """
 
-    group: ClassVar[str] = "search"
+    prefix: ClassVar[str] = "search"
     rotations: int = 600
     radius: float = 0.5
     spacing: float = 0.1
@@ -272,7 +251,7 @@ class GlobalOptions(_Checked):
             many dense spacings.
     """
 
-    group: ClassVar[str] = "global_stage"
+    prefix: ClassVar[str] = "global"
     candidates: str = "doubtful"
     feature_points: int = 3000
     dense_points: int = 30000
@@ -297,17 +276,7 @@ class GlobalOptions(_Checked):
             ("dense_settle",),
         )
         if self.candidates not in ("doubtful", "never"):
-            raise ValueError(f"global_candidates must be 'doubtful' or 'never', got {self.candidates!r}")
-
-
-_GROUPS: dict[str, type] = {
-    "coarse": CoarseOptions,
-    "polish": PolishOptions,
-    "plane": PlaneOptions,
-    "select": SelectOptions,
-    "search": SearchOptions,
-    "global_stage": GlobalOptions,
-}
+            raise ValueError(f"{self._name('candidates')} must be 'doubtful' or 'never', got {self.candidates!r}")
 
 
 @dataclass(frozen=True)
@@ -346,6 +315,28 @@ class RobustOptions:
                 group, name = FLAT_KEYS[key]
                 values[group][name] = value
         return cls(**{group: _GROUPS[group](**settings) for group, settings in values.items()})
+
+
+def _flat_keys() -> dict[str, tuple[str, str]]:
+    """``{flat name: (group, field)}`` of every field of every group (:func:`flat_name`).
+
+    Raises:
+        TypeError: two fields, or a field and a group, share a name (the new field needs ``_flat``).
+    """
+    keys: dict[str, tuple[str, str]] = {}
+    for group, options in _GROUPS.items():
+        for spec in fields(options):
+            name = flat_name(options, spec.name)
+            if name in keys or name in _GROUPS:
+                raise TypeError(f"{group}.{spec.name}: the flat name {name!r} is taken")
+            keys[name] = (group, spec.name)
+    return keys
+
+
+_GROUPS: dict[str, type] = get_type_hints(RobustOptions)
+"""The groups of :class:`RobustOptions`: ``{attribute: options class}``."""
+FLAT_KEYS = _flat_keys()
+"""The flat name of every setting: ``{flat name: (group, field)}``."""
 
 
 def robust_options(options: RobustOptions | Mapping[str, Any] | None) -> RobustOptions:

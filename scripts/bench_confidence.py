@@ -5,8 +5,9 @@
 
 Each record of ``linereg-benchmark``'s ``results.json`` carries ``confident``
 (:func:`linereg.registration.api.quality`); it is scored against *correct* = RRE <= 2 deg and
-RTE <= 2 % of the target's bounding-box diagonal (:func:`linereg.train.benchmark.confidence_lines`):
-TP/FP/FN/TN, precision and recall per method and over all records, then per source.
+RTE <= 2 % of the target's bounding-box diagonal
+(:func:`linereg.registration.benchmark_results.confidence_lines`): TP/FP/FN/TN, precision and
+recall per method and over all records, then per source.
 """
 
 from __future__ import annotations
@@ -23,7 +24,7 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("results", nargs="+", type=Path, help="results.json files of linereg-benchmark")
     args = parser.parse_args(argv)
-    from linereg.train.benchmark import confidence_lines, pooled_records
+    from linereg.registration.benchmark_results import confidence_lines, pooled_records
 
     print("\n".join(confidence_lines(pooled_records(args.results), "pairs")))
     return 0

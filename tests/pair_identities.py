@@ -15,6 +15,5 @@ def pair_identities(dataset: Any) -> set[tuple[str, Any]]:
     if hasattr(dataset, "pairs"):  # an RGB-D sequence
         return {(str(dataset.pairs[i][0].depth), dataset.pairs[i][1].number) for i in indices}
     return {
-        (str(dataset.shapes.items[i // len(dataset.views)][1]), dataset.views[i % len(dataset.views)])
-        for i in indices
+        (str(dataset.shapes.items[i // len(dataset.views)][1]), dataset.views[i % len(dataset.views)]) for i in indices
     }

@@ -146,8 +146,10 @@ def test_the_default_method_runs_on_the_cpu_and_refuses_other_devices(pair):
     from linereg.registration.api import _build
     from linereg.registration.robust import RobustRegistration
 
-    assert isinstance(_build("default", None, {})[0], RobustRegistration)
-    assert isinstance(_build("default", "cpu", {})[0], RobustRegistration)
+    assert isinstance(_build("robust", None, {})[0], RobustRegistration)
+    assert isinstance(_build("robust", "cpu", {})[0], RobustRegistration)
+    with pytest.raises(KeyError, match="method='default': not a registered method"):
+        _build("default", None, {})
     with pytest.raises(ValueError, match="method=robust runs on the CPU; device=cuda is not supported"):
         linereg.register(*pair[:2], device="cuda")
 

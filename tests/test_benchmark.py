@@ -1,4 +1,5 @@
-"""Benchmark harness (train/benchmark.py): records, written results, pair sources, CLI."""
+"""Benchmark harness (train/benchmark.py, registration/benchmark_results.py): records, written results,
+pair sources, CLI."""
 
 from __future__ import annotations
 
@@ -27,6 +28,7 @@ from linereg.io import write_point_cloud, write_transform
 from linereg.metrics import ERROR_KEYS
 from linereg.paths import REPO_ROOT
 from linereg.random_poses import random_transform_paper
+from linereg.registration.benchmark_results import recall_lines, recall_shortfalls
 from linereg.registration.methods import MethodResult
 from linereg.structures import PairSample
 from linereg.train.benchmark import (
@@ -34,8 +36,6 @@ from linereg.train.benchmark import (
     build_methods,
     expand_folder_argument,
     object_diameter,
-    recall_lines,
-    recall_shortfalls,
     run_benchmark,
     write_results,
 )

@@ -1,5 +1,5 @@
 """Real-scan benchmark: the ``3dmatch`` pair source on 3DMatch-layout folders, and the recall,
-overlap-bin and confidence reports of train/benchmark.py."""
+overlap-bin and confidence reports of registration/benchmark_results.py."""
 
 from __future__ import annotations
 
@@ -13,10 +13,7 @@ from scipy.spatial.transform import Rotation
 
 from linereg.datasets.benchmark_pairs import threedmatch_pairs
 from linereg.io import write_point_cloud
-from linereg.registration.methods import MethodResult
-from linereg.structures import PairSample
-from linereg.train import benchmark as benchmark_module
-from linereg.train.benchmark import (
+from linereg.registration.benchmark_results import (
     IDENTITY,
     confidence_lines,
     confusion,
@@ -26,10 +23,12 @@ from linereg.train.benchmark import (
     pooled_records,
     recall_key,
     recall_sections,
-    run_benchmark,
     summarize_records,
-    write_results,
 )
+from linereg.registration.methods import MethodResult
+from linereg.structures import PairSample
+from linereg.train import benchmark as benchmark_module
+from linereg.train.benchmark import run_benchmark, write_results
 from scripts import bench_confidence
 
 # ----------------------------------------------------------------------------- 3DMatch layout

@@ -89,6 +89,15 @@ def test_a_bad_override_ends_in_one_line_and_exit_code_2(arguments, named, tmp_p
     assert not list(tmp_path.iterdir())
 
 
+def test_register_names_every_method_with_method_alone(tmp_path, monkeypatch, capsys):
+    """``solver=`` is no key of linereg-register: ``method=robust|adam_loss|svd_irls|...`` is."""
+    arguments = ["source=a.ply", "target=b.ply", "solver=adam"]
+    assert _run_in_process("linereg-register", arguments, monkeypatch, tmp_path) == 2
+    (line,) = capsys.readouterr().err.strip().splitlines()
+    assert line.startswith("linereg-register: error: ") and "'solver'" in line
+    assert not list(tmp_path.iterdir())
+
+
 @pytest.mark.parametrize(
     ("command", "arguments", "named"),
     [

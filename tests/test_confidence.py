@@ -79,7 +79,7 @@ def test_every_method_gets_the_flag_from_the_same_test():
     truth[:2, :2] = [[np.cos(angle), -np.sin(angle)], [np.sin(angle), np.cos(angle)]]
     truth[:3, 3] = [0.1, -0.05, 0.02]
     moved = _moved(truth, target)
-    for method in ("default", "icp_point"):
+    for method in ("robust", "icp_point"):
         result = linereg.register(source, moved, method=method)
         expected = assess_registration(source, moved, result.transformation)
         assert result.confident is expected.confident

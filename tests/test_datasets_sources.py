@@ -112,6 +112,44 @@ def test_mesh_folder_views_split_holds_out_camera_stops(mesh_root):
         build_dataset({**config, "split": "val"})
 
 
+def test_mesh_folder_held_out_split_tests_on_the_named_shapes_only(mesh_root):
+    config = {
+        "name": "mesh_folder",
+        "root": str(mesh_root),
+        "split_rule": "held_out",
+        "held_out": ["lamp_0002"],
+        "protocol": {"name": "human", "num_views": 2},
+    }
+    train, test = (build_dataset({**config, "split": split}) for split in ("train", "test"))
+    train_names = {train.shapes.load(i).name for i in range(len(train.shapes))}
+    assert train_names == {"chair_0001", "chair_0002", "lamp_0001"}
+    assert [test.shapes.load(i).name for i in range(len(test.shapes))] == ["lamp_0002"]
+    assert len(train) == 6 and len(test) == 2 and list(test.views) == [0, 1]  # every view of each shape
+    assert train.shapes.describe() != test.shapes.describe()  # distinct cache keys
+    with pytest.raises(ValueError, match=r"held_out names \['sofa_0001'\] are no mesh .*'chair_0001'"):
+        build_dataset({**config, "held_out": ["sofa_0001"], "split": "test"})
+    with pytest.raises(ValueError, match="split_rule='held_out' needs held_out"):
+        build_dataset({**config, "held_out": None, "split": "test"})
+    with pytest.raises(ValueError, match=r"held_out=.*needs split_rule='held_out', got 'views'"):
+        build_dataset({**config, "split_rule": "views", "split": "test"})
+
+
+def test_mixed_target_alternates_view_and_whole_pairs_of_the_same_views(mesh_root):
+    def pairs(target: str):
+        protocol = {"name": "airplane", "num_views": 2, "num_points": 64, "target": target}
+        return build_dataset(
+            {"name": "mesh_folder", "root": str(mesh_root), "categories": "lamp", "protocol": protocol}
+        )
+
+    mixed, view, whole = pairs("mixed"), pairs("view"), pairs("whole")
+    assert [mixed.protocol.target_of(i) for i in range(4)] == ["view", "whole", "view", "whole"]
+    for index, same in ((0, view), (1, whole), (2, view), (3, whole)):  # pair i of a shape is view i % 2
+        np.testing.assert_array_equal(mixed[index].tgt_xyz, same[index].tgt_xyz)
+        np.testing.assert_array_equal(mixed[index].src_xyz, same[index].src_xyz)
+    with pytest.raises(ValueError, match="target must be one of"):
+        pairs("both")
+
+
 def test_mesh_folder_errors(tmp_path, mesh_root):
     with pytest.raises(FileNotFoundError, match="mesh folder not found"):
         build_dataset({"name": "mesh_folder", "root": str(tmp_path / "nowhere")})
@@ -211,6 +249,8 @@ def test_modelnet40_errors(tmp_path):
     (tmp_path / "ply_data_train0.h5").touch()
     with pytest.raises(FileNotFoundError, match=r"shape_names\.txt"):
         build_dataset({"name": "modelnet40", "root": str(tmp_path)})
+    with pytest.raises(ValueError, match="'held_out' is a mesh folder's rule"):
+        build_dataset({"name": "modelnet40", "root": str(tmp_path), "split_rule": "held_out"})
 
 
 # ----------------------------------------------------------------------------- pairs_folder

@@ -22,6 +22,7 @@ SPLITS = {  # split -> its protocol
     "human_view_vs_view": "human",
     "kinect_frames": "real",
 }
+BODIES = ("human_man", "human_neutral", "human_woman")
 pytestmark = pytest.mark.shared_data
 
 
@@ -68,3 +69,34 @@ def test_linereg_evaluate_scores_a_generalization_split(shared_data, tmp_path):
     metrics = evaluate(_compose("evaluate", [*overrides, "num_figures=0", "dataset.cache_dir=null"]))
     assert metrics["num_pairs"] == 4 and metrics["labelled"]
     assert math.isfinite(metrics["model"]["err_r_deg_mean"]) and metrics["identity"]["err_r_deg_mean"] > 10
+
+
+@pytest.mark.parametrize("body", BODIES)
+def test_leave_one_body_out_tests_every_view_of_a_body_its_training_never_saw(body, shared_data):
+    cfg = _compose(
+        "train",
+        [
+            "protocol=human",
+            "experiment=rpm_ours",
+            "dataset=human_unseen_body",
+            f"dataset.held_out={body}",
+            "dataset.cache_dir=null",
+        ],
+    )
+    train, val, test = (build_split(plain(cfg.dataset), split, progress=False) for split in ("train", "val", "test"))
+
+    def bodies(split) -> set[str]:
+        return {Path(name).stem for name, _ in pair_identities(split)}
+
+    assert bodies(test) == {body} and len(test) == 50
+    assert bodies(train) == set(BODIES) - {body} and len(train) == 100
+    assert bodies(val) <= bodies(train) and len(val) == 10
+
+
+def test_the_mixed_airplane_pairs_are_the_protocols_shapes_with_both_targets(shared_data):
+    cfg = _compose(
+        "train", ["protocol=airplane", "experiment=rpm_ours", "dataset=airplane_mixed_pairs", "dataset.cache_dir=null"]
+    )
+    mixed = build_split(plain(cfg.dataset), "train", progress=False)
+    assert pair_identities(mixed) == pair_identities(_protocol("airplane", "train"))
+    assert {mixed.protocol.target_of(view) for _, view in pair_identities(mixed)} == {"view", "whole"}

@@ -166,13 +166,17 @@ def test_a_registered_baseline_gets_its_flag_from_the_same_test(tmp_path):
 
 
 def test_register_with_a_chosen_loss_and_the_svd_solver(tmp_path):
+    """``method=adam_loss`` and ``method=svd_irls`` take their settings from the config."""
     src = surface(500, 3)
     write_point_cloud(tmp_path / "a.xyz", src)
     write_point_cloud(tmp_path / "b.xyz", apply(pose([5, 0, 0], [0.05, 0, 0]), src))
-    for overrides in ({"solver": "adam", "loss": "chamfer", "iterations": 60}, {"solver": "svd", "svd.iterations": 10}):
+    for overrides in (
+        {"method": "adam_loss", "loss": "chamfer", "iterations": 60},
+        {"method": "svd_irls", "svd.iterations": 10},
+    ):
         cfg = _compose(source=tmp_path / "a.xyz", target=tmp_path / "b.xyz", num_points=400, **overrides)
         _, report = register_files(cfg, tmp_path / "run")
-        assert np.isfinite(np.array(report["transform"])).all()
+        assert np.isfinite(np.array(report["transform"])).all() and report["method"]["name"] == overrides["method"]
 
 
 @pytest.mark.parametrize(
@@ -260,7 +264,7 @@ def test_coincident_points_are_an_error_and_collinear_points_a_warning(tmp_path)
 def test_loss_without_the_adam_solver_is_an_error(tmp_path):
     write_point_cloud(tmp_path / "a.ply", surface(100, 4))
     cfg = _compose(source=tmp_path / "a.ply", target=tmp_path / "a.ply", loss="chamfer")
-    with pytest.raises(RegisterError, match="loss=chamfer needs solver=adam"):
+    with pytest.raises(RegisterError, match="loss=chamfer needs method=adam_loss"):
         register_files(cfg, tmp_path / "run")
 
 

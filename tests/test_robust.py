@@ -31,7 +31,8 @@ from linereg.registration.poses import (
     spread_rotations,
 )
 from linereg.registration.robust import degeneracy, doubt
-from linereg.registration.robust_options import FLAT_KEYS, PolishOptions, RobustOptions
+from linereg.registration.robust_options import PolishOptions, RobustOptions
+from linereg.registration.robust_result import GLOBAL, STAGES
 from linereg.registration.search import pose_search
 from linereg.registration.solvers import start_poses
 from linereg.registration.welsch import fine_scales, fixed_scale_cost, polish_scales, welsch_irls
@@ -158,62 +159,6 @@ def test_polish_scales_fall_then_hold():
     assert len(polish_scales(PolishOptions(steps=0), 0.02)) == 0
 
 
-def options(**flat) -> RobustOptions:
-    return RobustOptions.from_mapping(flat)
-
-
-def test_options_are_checked():
-    with pytest.raises(ValueError, match="coarse_points must be > 0"):
-        options(coarse_points=0)
-    with pytest.raises(ValueError, match="rounds must be 1, 2 or 3"):
-        options(rounds=4)
-    with pytest.raises(ValueError, match="min_fitness must be in"):
-        options(min_fitness=1.5)
-    with pytest.raises(ValueError, match="plane_steps must be >= 0"):
-        options(plane_steps=-1)
-    with pytest.raises(ValueError, match="plane_neighbours must be >= 3"):
-        options(plane_neighbours=2)
-    with pytest.raises(ValueError, match="plane_epsilon must be > 0"):
-        options(plane_epsilon=0.0)
-    with pytest.raises(ValueError, match="coincident_share must be in"):
-        options(coincident_share=2.0)
-    with pytest.raises(ValueError, match="doubtful_select must be 'polish' or 'fixed'"):
-        options(doubtful_select="line")
-    with pytest.raises(ValueError, match="coarse_sides must be"):
-        options(coarse_sides=("both", "target"))
-    with pytest.raises(ValueError, match="search_keep must be > 0"):
-        options(search_keep=0)
-    assert options(coarse_sides=["source"]).coarse.sides == ("source",)
-    with pytest.raises(TypeError, match="unknown option"):
-        METHODS.build({"name": "robust", "options": {"startz": 3}})
-    with pytest.raises(TypeError, match="unknown polish option"):
-        options(polish={"stepz": 3})
-    with pytest.raises(ValueError, match="method=robust runs on the CPU; device=cuda is not supported"):
-        METHODS.build({"name": "robust", "device": "cuda"})
-
-
-def test_every_flat_key_sets_its_group_field_and_groups_work_too():
-    """One mapping from the flat keys users pass to the stage groups: each key lands in its field."""
-    defaults = RobustOptions()
-    groups = [field.name for field in dataclasses.fields(defaults)]
-    special = {
-        "coarse_sides": ("source",),
-        "doubtful_select": "fixed",
-        "rounds": 2,
-        "doubt_ratio": 1.5,
-        "global_candidates": "never",
-    }
-    for key, (group, name) in FLAT_KEYS.items():
-        default = getattr(getattr(defaults, group), name)
-        value = special[key] if key in special else default + 1 if isinstance(default, int) else 0.9 * default
-        changed = RobustOptions.from_mapping({key: value})
-        assert getattr(getattr(changed, group), name) == value, key
-        assert all(getattr(changed, other) == getattr(defaults, other) for other in groups if other != group)
-    assert len(FLAT_KEYS) == sum(len(dataclasses.fields(getattr(defaults, group))) for group in groups)
-    nested = RobustOptions.from_mapping({"polish": {"steps": 30}, "starts": 7})
-    assert nested.polish.steps == 30 and nested.coarse.starts == 7
-
-
 @pytest.fixture(scope="module")
 def partial_pair():
     """A partial source (700 points with x > -0.3) against the whole, moved surface (3000 points)."""
@@ -234,13 +179,28 @@ def test_robust_registration_recovers_a_partial_view_and_reports_its_quality(par
 
 
 def test_a_doubtful_pose_gets_the_later_rounds(partial_pair):
+    """Rounds 2 and 3 add their candidates, and the polish objective chooses among them all."""
     src, tgt, truth = partial_pair
     local = {"max_cost": 1e-6, "global_candidates": "never"}
-    result = METHODS.build({"name": "robust", "num_points": 512, "options": local})(src, tgt)
+    result = METHODS.build({"name": "robust", "num_points": 512, "options": local}).solve(src, tgt)
     search_keep = RobustOptions().search.keep
     assert result.info["rounds"] == 3 and result.info["starts"] == 2 * (4 + 4) + search_keep
     assert result.info["doubtful"] is True and result.info["selection"] == "polish"
     assert error_deg(result.transform, truth) < 1.0
+    assert [(step.round, step.stage, step.judgement) for step in result.history] == [
+        (number, STAGES[number], "fixed") for number in (1, 2, 3)
+    ]
+    assert all(step.doubtful for step in result.history)
+    assert sum(step.added for step in result.history) == len(result.candidates)
+    origins = [(c.round, c.origin, c.start) for c in result.candidates]
+    assert len(set(origins)) == len(origins) == result.info["candidates"]
+    assert {(c.round, c.origin) for c in result.candidates} == {(1, "start"), (2, "start"), (3, "search")}
+    assert all(c.start < (search_keep if c.round == 3 else 8) for c in result.candidates)
+    objectives = [c.objective for c in result.candidates]
+    assert result.chosen == int(np.argmin(objectives)) and objectives != [c.cost for c in result.candidates]
+    assert result.info["cost"] == result.candidates[result.chosen].cost
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        result.doubtful = False
     capped = METHODS.build({"name": "robust", "num_points": 512, "options": {**local, "rounds": 1}})
     assert capped(src, tgt).info["rounds"] == 1
 
@@ -248,10 +208,17 @@ def test_a_doubtful_pose_gets_the_later_rounds(partial_pair):
 def test_a_doubtful_first_round_brings_the_global_candidates_and_the_dense_judgement(partial_pair):
     """A first round made doubtful (``max_cost``): the FPFH candidates join and the dense costs choose."""
     src, tgt, truth = partial_pair
-    result = METHODS.build({"name": "robust", "num_points": 512, "options": {"max_cost": 1e-6}})(src, tgt)
+    result = METHODS.build({"name": "robust", "num_points": 512, "options": {"max_cost": 1e-6}}).solve(src, tgt)
     info = result.info
     assert info["selection"] == "dense" and info["global_candidates"] >= 2 and info["coincident"] > 0.5
     assert error_deg(result.transform, truth) < 1.0
+    first, found, *later = result.history
+    assert (first.stage, first.judgement, first.doubtful) == (STAGES[1], "fixed", True)
+    assert (found.round, found.stage, found.starts, found.added) == (1, GLOBAL, 0, info["global_candidates"])
+    assert all(step.judgement == "dense" for step in [found, *later])
+    assert len(result.candidates) <= RobustOptions().global_stage.dense_keep and not result.fine
+    costs = [candidate.cost for candidate in result.candidates]
+    assert result.chosen == int(np.argmin(costs)) and costs == [c.objective for c in result.candidates]
 
 
 def test_init_is_applied_to_the_source_first(partial_pair):
@@ -262,10 +229,12 @@ def test_init_is_applied_to_the_source_first(partial_pair):
     assert error_deg(result.transform @ np.linalg.inv(flip), truth) < 0.5
 
 
-def test_results_are_deterministic(partial_pair):
+def test_results_are_deterministic_and_the_method_result_is_the_typed_one(partial_pair):
     src, tgt, _ = partial_pair
     method = METHODS.build({"name": "robust", "num_points": 512})
-    np.testing.assert_array_equal(method(src, tgt).transform, method(src, tgt).transform)
+    called, solved = method(src, tgt), method.solve(src, tgt)
+    np.testing.assert_array_equal(called.transform, solved.transform)
+    assert called.info == solved.info and list(called.info) == list(solved.info)
 
 
 def test_degenerate_clouds_warn_or_fail():

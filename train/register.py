@@ -4,14 +4,18 @@ A thin command around :func:`linereg.register` (also ``python -m train.register`
 Hydra overrides select everything else (``configs/register/register.yaml``; the app has its own
 config root so that ``loss=...`` names a loss, not the training configs' ``loss`` group)::
 
-    python -m train.register source=a.ply target=b.ply                      # robust default
+    python -m train.register source=a.ply target=b.ply                      # method=robust
     python -m train.register source=a.ply target=b.ply gt=gt.txt            # + errors vs GT
     python -m train.register source=a.ply target=b.ply init=odom.txt        # initial guess
     python -m train.register source=a.ply target=b.ply picture=true         # + before/after PNG
-    python -m train.register source=a.ply target=b.ply solver=adam          # Adam schedules
-    python -m train.register source=a.ply target=b.ply solver=svd           # IRLS/SVD solver
+    python -m train.register source=a.ply target=b.ply method=adam_loss     # Adam schedules
+    python -m train.register source=a.ply target=b.ply method=svd_irls      # IRLS/SVD solver
     python -m train.register source=a.ply target=b.ply method=icp_point     # any registered method
-    python -m train.register source=a.ply target=b.ply method=outputs/train/runs/<run> refine=true  # a network
+    python -m train.register source=a.ply target=b.ply method=rpm_ours_airplane refine=true  # a network
+
+``method=`` takes what :func:`linereg.register` takes: a name of
+:data:`linereg.registration.METHODS` (the settings of ``robust``, ``adam_loss`` and ``svd_irls``
+come from the config), a pretrained name, or a checkpoint file / run folder of ``python -m train``.
 
 It prints the 4x4 source-to-target transform with Open3D's ``fitness`` and ``inlier_rmse`` and a
 ``confident`` flag, and writes ``transform.txt``, ``registered.ply`` (the whole source,
@@ -38,7 +42,6 @@ from linereg.train.cli import reported, require, run_app
 COMMAND = "linereg-register"
 
 _MIN_POINTS = 3
-SOLVERS = ("robust", "adam", "svd")
 
 
 class RegisterError(ValueError):
@@ -116,35 +119,30 @@ def read_cloud(path: Any, argument: str):
 
 
 def method_config(cfg: DictConfig) -> dict[str, Any] | str:
-    """The registration method described by a ``register.yaml`` config: ``method`` (a registered name
-    or a checkpoint, passed on as it is) or the ``solver`` shorthand's method config."""
-    if cfg.method is not None:
-        return str(cfg.method)
-    common = {"num_points": cfg.num_points, "seed": cfg.seed, "progress": cfg.progress}
-    if cfg.solver not in SOLVERS:
-        raise RegisterError(f"solver={cfg.solver}: choose one of {', '.join(SOLVERS)}")
-    if cfg.solver == "svd":
-        return {
-            "name": "svd_irls",
-            "iterations": cfg.svd.iterations,
-            **OmegaConf.to_container(cfg.svd.options),
-            **common,
-        }
-    if cfg.solver == "robust":
+    """The registration method of a ``register.yaml`` config: ``robust``, ``adam_loss`` and
+    ``svd_irls`` as a method config with the config's settings; any other ``method`` (a registered
+    name, a pretrained name or a checkpoint) as it is."""
+    if cfg.method == "robust":
         if cfg.loss is not None:
-            raise RegisterError(f"loss={cfg.loss} needs solver=adam (the robust solver has its own losses)")
+            raise RegisterError(f"loss={cfg.loss} needs method=adam_loss (the robust solver has its own losses)")
         options = OmegaConf.to_container(cfg.robust) if cfg.robust else {}
-        config = {"name": "robust", "options": options, "num_points": cfg.num_points, "progress": cfg.progress}
-        if cfg.device not in (None, "cpu"):
-            config["device"] = cfg.device  # the solver refuses it, saying why
-        return config
+        return {"name": "robust", "options": options, "num_points": cfg.num_points, "progress": cfg.progress}
+    common = {"num_points": cfg.num_points, "seed": cfg.seed, "progress": cfg.progress}
+    if cfg.method == "svd_irls":
+        options = OmegaConf.to_container(cfg.svd.options)
+        return {"name": "svd_irls", "iterations": cfg.svd.iterations, **options, **common}
+    if cfg.method == "adam_loss":
+        starts = {"starts": cfg.starts, "start_angle_deg": cfg.start_angle_deg}
+        return {"name": "adam_loss", "stages": _adam_stages(cfg), **starts, **common}
+    return str(cfg.method)
+
+
+def _adam_stages(cfg: DictConfig) -> list[dict[str, Any]] | str:
+    """The ``adam_loss`` schedule: one stage of ``loss`` when given, else ``stages``."""
     if cfg.loss is not None:
         loss = {"name": cfg.loss} if isinstance(cfg.loss, str) else OmegaConf.to_container(cfg.loss)
-        stages = [{"loss": loss, "iterations": cfg.iterations, "lr": cfg.lr}]
-    else:
-        stages = cfg.stages if isinstance(cfg.stages, str) else OmegaConf.to_container(cfg.stages)
-    starts = {"starts": cfg.starts, "start_angle_deg": cfg.start_angle_deg}
-    return {"name": "adam_loss", "stages": stages, **starts, **common}
+        return [{"loss": loss, "iterations": cfg.iterations, "lr": cfg.lr}]
+    return cfg.stages if isinstance(cfg.stages, str) else OmegaConf.to_container(cfg.stages)
 
 
 def register_files(cfg: DictConfig, out_dir: Path) -> tuple[Any, dict[str, Any]]:
@@ -192,9 +190,9 @@ def _register(cfg: DictConfig, src, tgt, init: np.ndarray | None, gt: np.ndarray
                 tgt,
                 init=init,
                 method=config,
-                device=cfg.device if cfg.method is not None else None,
+                device=cfg.device,
                 fitness_threshold=cfg.fitness_threshold,
-                **(options if cfg.method is not None and cfg.refine else {}),
+                **(options if cfg.refine else {}),
             )
         except (KeyError, TypeError, ValueError) as error:
             raise RegisterError(str(error)) from error

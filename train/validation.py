@@ -15,7 +15,7 @@ import warnings
 from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import torch
 from torch import nn
@@ -24,9 +24,7 @@ from torch.utils.data import Dataset
 from linereg.registration.iterates import IterateRule
 from linereg.train import distributed
 from linereg.train.evaluate import Evaluation, evaluate_model, report, write_evaluation
-
-if TYPE_CHECKING:
-    from linereg.train.loop import TrainerSettings
+from linereg.train.settings import TrainerSettings
 
 
 @dataclass

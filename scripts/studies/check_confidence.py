@@ -23,14 +23,14 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
-import linereg.registration.robust as robust
 from linereg.checks import nearest_rotation
 from linereg.datasets.benchmark_pairs import select_pairs
 from linereg.registration import evaluation
 from linereg.registration.baselines import diameter
-from linereg.registration.methods import METHODS, translation
-from linereg.registration.poses import as_matrices, rotation_gap_deg
-from linereg.train.benchmark import CORRECT_ROTATION_DEG, CORRECT_TRANSLATION_FRACTION
+from linereg.registration.benchmark_results import CORRECT_ROTATION_DEG, CORRECT_TRANSLATION_FRACTION
+from linereg.registration.methods import METHODS
+from linereg.registration.poses import rotation_gap_deg
+from linereg.registration.robust import RobustRegistration
 
 SOURCES = {
     "airplane": {"name": "airplane"},
@@ -40,20 +40,6 @@ SOURCES = {
     "fragments": {"name": "fragments"},
 }
 RMSE_LIMITS = (1.1, 1.15, 1.2, 1.25, 1.3, 1.35, 1.4)
-
-
-class CandidateRecorder(robust.RobustRegistration):
-    """The default, keeping every candidate it polished (mapped back to the input frames)."""
-
-    def _pair(self, src, tgt):
-        pair, self.radius = super()._pair(src, tgt)
-        return pair, self.radius
-
-    def _rounds(self, pair):
-        poses, costs, choice = super()._rounds(pair)
-        self.candidates = as_matrices(poses)
-        self.candidates[:, :3, 3] *= self.radius
-        return poses, costs, choice
 
 
 def measured(source: np.ndarray, target: np.ndarray, transform: np.ndarray) -> tuple[float, float]:
@@ -73,10 +59,8 @@ def source_pairs(name: str, count: int):
 def poses_of(name: str, pair) -> list[tuple[str, np.ndarray]]:
     """The candidates of the default and the baselines' results on ``pair``."""
     src, tgt = pair.src_xyz.astype(np.float64), pair.tgt_xyz.astype(np.float64)
-    recorder = CandidateRecorder()
-    result = recorder(src, tgt)
-    centring = translation(tgt.mean(axis=0)), translation(-src.mean(axis=0))
-    poses = [("candidate", centring[0] @ m @ centring[1]) for m in recorder.candidates]
+    result = RobustRegistration().solve(src, tgt)
+    poses = [("candidate", candidate.transform) for candidate in result.candidates]
     poses.append(("default", result.transform))
     global_baseline = "fpfh_ransac" if name == "fragments" else "fgr"
     for method in ("icp_point", global_baseline):

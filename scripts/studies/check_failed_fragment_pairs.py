@@ -38,8 +38,8 @@ from linereg.datasets.fragments import (
 )
 from linereg.knn import NearestNeighbors
 from linereg.paths import shared_data_dir
+from linereg.registration.benchmark_results import RECALL_THRESHOLDS
 from linereg.registration.welsch import welsch_cost
-from linereg.train.benchmark import RECALL_THRESHOLDS
 from scripts.studies.check_fragment_ground_truth import pose_gap
 
 FITNESS_DISTANCE = 0.015

@@ -1,0 +1,65 @@
+#!/usr/bin/env bash
+# The trainings behind docs/results.md's generalization tables, then their scores:
+#
+#   scripts/reproduce_generalization.sh                                   # every step, seeds 0 1 2
+#   STEPS=unseen_body CELLS="rpm_cd rpm_ours" SEEDS=0 scripts/reproduce_generalization.sh
+#   DRY=1 scripts/reproduce_generalization.sh                             # print each run, run nothing
+#
+# STEPS:
+#   unseen_body  Human, leave one body out: each cell trained on two bodies and tested on the third,
+#                one run per held-out body (configs/dataset/human_unseen_body.yaml);
+#   mixed_pairs  Airplane with both pair types in training, view-vs-view and view-vs-whole at the
+#                budget of one (configs/dataset/airplane_mixed_pairs.yaml).
+# Each run is the README's cell command with a dataset choice (and the same machine arguments as
+# scripts/reproduce_recipe.sh: one thread, no progress bars). Finished runs (metrics.json present)
+# are skipped, an interrupted one resumes. Runs land in $OUT/<step>/...; the scores of every run and
+# of the shipped networks go to $OUT/scores (scripts/score_generalization.py).
+set -euo pipefail
+cd "$(dirname "$0")/.."
+PY=${PYTHON:-.venv/bin/python}
+OUT=${OUT:-outputs/generalization_runs}
+SEEDS=${SEEDS:-0 1 2}
+CELLS=${CELLS:-rpm_gt rpm_cd rpm_ours}
+STEPS=${STEPS:-unseen_body mixed_pairs}
+BODIES="human_man human_neutral human_woman"
+DRY=${DRY:-0}
+export OMP_NUM_THREADS=${OMP_NUM_THREADS:-1}
+
+# "<run folder> <arguments>" of every run of a step
+runs() {
+  local step=$1 seed cell body
+  for seed in $SEEDS; do
+    for cell in $CELLS; do
+      case $step in
+        unseen_body)
+          for body in $BODIES; do
+            echo "$OUT/unseen_body/$body/${cell}_s$seed experiment=$cell protocol=human dataset=human_unseen_body dataset.held_out=$body seed=$seed"
+          done ;;
+        mixed_pairs)
+          echo "$OUT/mixed_pairs/${cell}_s$seed experiment=$cell protocol=airplane dataset=airplane_mixed_pairs seed=$seed" ;;
+        *) echo "reproduce_generalization.sh: error: unknown step '$step' (unseen_body, mixed_pairs)" >&2; return 2 ;;
+      esac
+    done
+  done
+}
+
+for step in $STEPS; do runs "$step" > /dev/null; done  # unknown steps fail before any run
+for step in $STEPS; do
+  while read -r dir args; do
+    read -r -a args <<< "$args"
+    if [[ $DRY != 0 ]]; then
+      echo "$dir ${args[*]}"
+      continue
+    fi
+    if [[ -f $dir/metrics.json ]]; then
+      echo "done: $dir"
+      continue
+    fi
+    mkdir -p "$(dirname "$dir")"
+    [[ -d $dir/checkpoints ]] && args+=(resume=true)
+    echo "run: $dir"
+    "$PY" -m train "${args[@]}" trainer.threads=1 trainer.progress=false "hydra.run.dir=$dir" >> "$dir.log" 2>&1 \
+      || { tail -20 "$dir.log"; exit 1; }
+  done < <(runs "$step")
+done
+[[ $DRY != 0 ]] || "$PY" scripts/score_generalization.py --out "$OUT/scores" --runs "$OUT" --register

@@ -248,6 +248,13 @@ def scale_transform(transform: np.ndarray, center: np.ndarray, scale: float) -> 
     return scaled
 
 
+def _stretch(factors: np.ndarray, center: np.ndarray, points: np.ndarray, normals: np.ndarray):
+    """``(N, 3)`` points scaled by ``factors`` per axis about ``center``, and their normals
+    (scaled by the inverse factors, renormalised)."""
+    normals = normals / factors
+    return center + (points - center) * factors, normals / np.linalg.norm(normals, axis=1, keepdims=True)
+
+
 def _apply(transform: torch.Tensor, points: np.ndarray, normals: np.ndarray | None):
     """``(T points, R normals)`` as float64 numpy arrays (normals may be ``None``)."""
     moved = transform_points(transform, torch.from_numpy(np.asarray(points, np.float64))).numpy()
@@ -284,6 +291,8 @@ class ViewProtocol:
         normals: ``"estimate"`` (PCA, oriented to the camera) or ``"surface"`` (mesh normals,
             or the cloud's own when it has them).
         normal_k: neighbours for normal estimation.
+        anisotropic_scale: training augmentation: both clouds of a pair are stretched by one factor
+            per axis of the shape frame, drawn from ``[1 - a, 1 + a]`` (0: the shape as it is).
     """
 
     name: str = "airplane"
@@ -300,8 +309,11 @@ class ViewProtocol:
     max_translation: float = 0.2
     normals: str = "estimate"
     normal_k: int = 30
+    anisotropic_scale: float = 0.0
 
     def __post_init__(self) -> None:
+        if not 0 <= self.anisotropic_scale < 1:
+            raise ValueError(f"anisotropic_scale must be in [0, 1), got {self.anisotropic_scale}")
         if self.target not in TARGETS:
             raise ValueError(f"target must be one of {TARGETS}, got {self.target!r}")
         if self.normals not in ("estimate", "surface"):
@@ -378,6 +390,10 @@ class ViewProtocol:
             whole_xyz, whole_normals = views.whole()
             idx = subsample(whole_xyz, self.num_points, rng)
             tgt_xyz, tgt_normals = whole_xyz[idx], whole_normals[idx]
+        if self.anisotropic_scale > 0:
+            stretch = rng.uniform(1 - self.anisotropic_scale, 1 + self.anisotropic_scale, size=3)
+            src_xyz, src_normals = _stretch(stretch, views.center, src_xyz, src_normals)
+            tgt_xyz, tgt_normals = _stretch(stretch, views.center, tgt_xyz, tgt_normals)
         (src_xyz, tgt_xyz), center, scale = fit_into_cube(src_xyz, tgt_xyz, half_extent=self.half_extent)
         transform = random_transform_paper(
             1,

@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # Reruns the paper's learning grids (Tables 3-5) with the paper's settings (recipe=paper) at the
-# CPU scale of the protocols (configs/protocol/, configs/recipe_protocol/paper_*.yaml), the classical baselines
+# CPU scale of the protocols (configs/protocol/, configs/cell/paper_<protocol>_*.yaml), the classical baselines
 # on the same test pairs, and the fine-tuning experiment; then writes the tables and figures
 # (scripts/reproduce_report.py).
 #

@@ -43,10 +43,10 @@ read -r -a EXTRA <<< "${EXTRA:-}"
 export OMP_NUM_THREADS=${OMP_NUM_THREADS:-1}
 
 # Everything the cells rely on is pinned here, so that the CPU recipe's files (configs/recipe/cpu.yaml,
-# configs/recipe_*/cpu_*.yaml) leave this study as it is; only the scored iterate is the recipe's
-# (configs/recipe_cell/cpu_<protocol>_<model>.yaml).
+# configs/cell/cpu_*.yaml, configs/recipe_model/cpu_*.yaml) leave this study as it is; only the scored
+# iterate is the recipe's (configs/cell/cpu_<protocol>_<loss>.yaml).
 # loss.nu0=null: the paper's Welsch scale factor in every line-loss cell (the `_nu2` cells set
-# 2), whatever the recipe sets for a protocol (configs/recipe_cell_loss/cpu_human_*_ours.yaml).
+# 2), whatever the recipe sets for a protocol (configs/cell/cpu_human_*_ours.yaml).
 COMMON=(trainer.num_points=256 trainer.threads=1 trainer.progress=false trainer.log_term_grad_norms=false
   trainer.evaluate_checkpoint=last optimizer=adam optimizer.lr=1e-3 scheduler=cosine curriculum=quick loss.nu0=null)
 case $PROTOCOL in

@@ -1,24 +1,34 @@
 """Score networks beyond their own test split: each protocol's generalization splits, one table each.
 
-    python scripts/score_generalization.py --out outputs/generalization            # the shipped networks
-    python scripts/score_generalization.py --out <dir> --models rpm_ours_airplane=<run> --register
+    python scripts/score_generalization.py --out outputs/generalization --register
+    python scripts/score_generalization.py --out <dir> --runs outputs/generalization_runs --register
 
-For every protocol, the networks trained on it (by default the shipped ``rpm_{gt,cd,ours}_<protocol>``
-of :mod:`linereg.pretrained`) are scored by ``linereg-evaluate`` on its test pairs (``in-protocol``)
-and on every generalization split of :data:`SPLITS` (a dataset config of ``configs/dataset/``), with
-the identity's error on the same pairs and, with ``--register``, that of ``linereg.register`` (the
-default solver, no network; once per protocol and split). Each score is cached in
-``<out>/<model>/<split>.json``, so a cut run resumes; ``<out>/table.md`` holds mean Err_R (degrees) per protocol.
+The shipped networks ``rpm_{gt,cd,ours}_<protocol>`` of :mod:`linereg.pretrained` are scored by
+``linereg-evaluate`` on their protocol's test pairs (``in-protocol``) and on every generalization
+split of :data:`SPLITS` (a dataset config of ``configs/dataset/``). With ``--runs`` (the folder of
+``scripts/reproduce_generalization.sh``), also:
+
+* ``unseen_body/<body>/<cell>_s<seed>``: each leave-one-body-out run on its own test split, the
+  body its training never saw;
+* ``mixed_pairs/<cell>_s<seed>``: each run trained on both Airplane pair types, on the Airplane
+  splits, and on the validation pairs of both pair types (fresh poses of training shapes, the
+  pairs the recipe's choice is made on) beside the shipped view-vs-view networks.
+
+Every table gives the identity's error on the same pairs and, with ``--register``, that of
+``linereg.register`` (the default solver, no network). Each score is cached in
+``<out>/<row>/<split>.json``, so a cut run resumes; ``<out>/table.md`` holds mean Err_R (degrees).
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import re
 import sys
 import tempfile
 import time
-from collections.abc import Mapping
+from collections.abc import Iterable, Mapping
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -35,18 +45,47 @@ SPLITS: dict[str, list[tuple[str, str | None]]] = {
         ("view vs whole shape", "airplane_view_vs_whole"),
         ("7 other ModelNet40 classes", "airplane_other_categories"),
     ],
-    "human": [(IN_PROTOCOL, None), ("view vs view", "human_view_vs_view")],
+    "human": [
+        (IN_PROTOCOL, None),
+        ("view vs view", "human_view_vs_view"),
+        ("armadillo (no SMPL body)", "human_armadillo"),
+    ],
     "real": [(IN_PROTOCOL, None), ("Kinect frames (SLAM poses)", "kinect_frames")],
 }
 LOSSES = ("gt", "cd", "ours")
+BODIES = ("human_man", "human_neutral", "human_woman")
+# The validation pairs of the mixed-pairs choice: fresh poses (the val split's seed) of 144
+# training pairs, one column per pair type.
+VALIDATION_PAIRS = 144
+VALIDATION = [("val: view vs view", "airplane_views"), ("val: view vs whole", "airplane_view_vs_whole")]
+# The mixed-pairs runs on the Airplane splits; airplane_views holds the protocol's own pairs.
+MIXED_SPLITS = [(IN_PROTOCOL, "airplane_views"), *SPLITS["airplane"][1:]]
+RUN_NAME = re.compile(r".+_s\d+$")  # <cell or settings>_s<seed>
+# The Human runs on the validation pairs of their choice: fresh poses of every training pair.
+HUMAN_VALIDATION_PAIRS = 120
+HUMAN_SPLITS = SPLITS["human"]
 
 
-def score(checkpoint: str, dataset: str | None, *, register: Path | None) -> dict[str, float]:
-    """Mean Err_R of ``checkpoint`` and of the identity on the test split of ``dataset`` (``None``:
-    the checkpoint's own); with ``register`` (a cache file shared by the networks scored on the same
-    pairs), also that of ``linereg.register``."""
-    overrides = [f"checkpoint={checkpoint}", "progress=false", "num_figures=0", "with_loss=false"]
-    overrides += [f"dataset={dataset}"] if dataset else []
+@dataclass(frozen=True)
+class Job:
+    """One score: ``checkpoint`` on ``split`` of ``dataset`` (None: the checkpoint's own), cached at
+    ``<out>/<key>.json``; ``register_key`` names the cache of ``linereg.register`` on those pairs."""
+
+    key: str
+    checkpoint: str
+    dataset: str | None
+    split: str = "test"
+    register_key: str | None = None
+    subset: int | None = None
+
+
+def score(job: Job, *, register: Path | None) -> dict[str, float]:
+    """Mean Err_R of the job's network and of the identity on its pairs; with ``register`` (a cache
+    file shared by the networks scored on the same pairs), also that of ``linereg.register``."""
+    overrides = [f"checkpoint={job.checkpoint}", f"split={job.split}", "progress=false", "num_figures=0"]
+    overrides += ["with_loss=false", *([f"dataset={job.dataset}"] if job.dataset else [])]
+    if job.subset is not None:
+        overrides.append(f"dataset.splits.{job.split}.subset={job.subset}")
     with tempfile.TemporaryDirectory() as scratch, initialize_config_dir(CONFIG_DIR, version_base="1.3"):
         cfg = compose("evaluate", overrides=[*overrides, f"output_dir={scratch}", f"paths.root_dir={Path.cwd()}"])
         metrics = evaluate(cfg)
@@ -87,52 +126,254 @@ def register_error(cfg) -> float:
     return float(np.mean(errors))
 
 
-def table(results: Mapping[str, Mapping[str, Mapping[str, float]]]) -> str:
-    """Markdown: per protocol, a row per network, identity and register, a column per split."""
+def shipped_jobs() -> list[Job]:
+    """The shipped networks on their protocol's splits."""
+    return [
+        Job(f"rpm_{loss}_{protocol}/{pairs}", f"rpm_{loss}_{protocol}", dataset, "test", f"{protocol}_{pairs}")
+        for protocol, splits in SPLITS.items()
+        for loss in LOSSES
+        for _, dataset in splits
+        for pairs in [dataset or "test"]
+    ]
+
+
+def validation_jobs(checkpoints: Mapping[str, str]) -> list[Job]:
+    """Each Airplane network ``{row: checkpoint}`` on the validation pairs of both pair types."""
+    return [
+        Job(f"{row}/val_{dataset}", checkpoint, dataset, "val", f"airplane_val_{dataset}", VALIDATION_PAIRS)
+        for row, checkpoint in checkpoints.items()
+        for _, dataset in VALIDATION
+    ]
+
+
+def run_folders(runs: Path, step: str) -> dict[str, Path]:
+    """``{relative name: folder}`` of the finished runs of a step of ``reproduce_generalization.sh``."""
+    found = {}
+    for metrics in sorted((runs / step).glob("**/metrics.json")):
+        if RUN_NAME.match(metrics.parent.name):
+            found[str(metrics.parent.relative_to(runs))] = metrics.parent
+    return found
+
+
+def run_jobs(runs: Path) -> list[Job]:
+    """The leave-one-body-out runs on their held-out body, the mixed-pairs runs on the Airplane splits."""
+    jobs = [
+        Job(f"{name}/test", str(folder), None, "test", f"human_unseen_{folder.parent.name}")
+        for name, folder in run_folders(runs, "unseen_body").items()
+    ]
+    for name, folder in run_folders(runs, "mixed_pairs").items():
+        for column, dataset in MIXED_SPLITS:  # the register cache of the shipped networks' same pairs
+            pairs = "test" if column == IN_PROTOCOL else dataset
+            jobs.append(Job(f"{name}/{dataset}", str(folder), dataset, "test", f"airplane_{pairs}"))
+    return jobs
+
+
+def seed_jobs(runs: Path) -> list[Job]:
+    """The ``recipe/<protocol>/<cell>_s<seed>`` runs (the protocol's cells at other seeds) on its splits."""
+    jobs = []
+    for protocol, splits in SPLITS.items():
+        for name, folder in run_folders(runs / "recipe", protocol).items():
+            for _, dataset in splits:
+                pairs = dataset or "test"
+                jobs.append(Job(f"recipe/{name}/{pairs}", str(folder), dataset, "test", f"{protocol}_{pairs}"))
+    return jobs
+
+
+def choice_jobs(runs: Path) -> list[Job]:
+    """Human's line-loss settings: each ``human_choice`` run and the shipped ``rpm_ours_human`` on the
+    validation pairs (the choice) and the test pairs."""
+    rows = {"rpm_ours_human": "rpm_ours_human"}
+    rows.update({name: str(folder) for name, folder in run_folders(runs, "human_choice").items()})
+    return [
+        Job(f"{row}/val", checkpoint, None, "val", "human_val", HUMAN_VALIDATION_PAIRS)
+        for row, checkpoint in rows.items()
+    ] + [Job(f"{row}/test", checkpoint, None, "test", "human_test") for row, checkpoint in rows.items()]
+
+
+def stretch_jobs(runs: Path) -> list[Job]:
+    """The ``human_stretch`` runs: each fold on its held-out body, the three-body runs on the Human splits."""
+    jobs = []
+    for name, folder in run_folders(runs, "human_stretch").items():
+        if folder.parent.name == "all":
+            jobs += [
+                Job(f"{name}/{dataset or 'test'}", str(folder), dataset, "test", f"human_{dataset or 'test'}")
+                for _, dataset in HUMAN_SPLITS
+            ]
+        else:
+            jobs.append(Job(f"{name}/test", str(folder), None, "test", f"human_unseen_{folder.parent.name}"))
+    return jobs
+
+
+def run_all(jobs: Iterable[Job], out: Path, register: bool) -> dict[str, dict[str, float]]:
+    """``{job key: score}``, scoring what is not cached yet."""
+    results = {}
+    for job in jobs:
+        cached = out / f"{job.key}.json"
+        if not cached.is_file():
+            start = time.perf_counter()
+            shared = out / "register" / f"{job.register_key}.json" if register and job.register_key else None
+            value = score(job, register=shared)
+            cached.parent.mkdir(parents=True, exist_ok=True)
+            cached.write_text(json.dumps(value, indent=2))
+            print(f"{job.key}: {value['model']:.2f} deg ({time.perf_counter() - start:.0f} s)", flush=True)
+        results[job.key] = json.loads(cached.read_text())
+    return results
+
+
+def _cells(values: list[float | None]) -> str:
+    """`` | ``-joined cells, empty where no value."""
+    return " | ".join("" if v is None else f"{v:.2f}" for v in values)
+
+
+def _reference_rows(scores: Mapping[str, Mapping[str, float]], keys: list[list[str]]) -> list[str]:
+    """The identity and ``register`` rows: per column, the value of the first scored key that has it."""
+    lines = []
+    for row, label in (("identity", "identity (no motion)"), ("register", "`linereg.register`")):
+        cells = [next((scores[k][row] for k in column if k in scores and row in scores[k]), None) for column in keys]
+        if any(value is not None for value in cells):
+            lines.append(f"| {label} | {_cells(cells)} |")
+    return lines
+
+
+def shipped_table(scores: Mapping[str, Mapping[str, float]]) -> str:
+    """Per protocol, a row per cell, a column per split: the shipped network (seed 0) and the
+    ``recipe/<protocol>`` runs of other seeds, as ``mean (seed 0, seed 1, ...)``."""
     lines = []
     for protocol, splits in SPLITS.items():
         columns = [column for column, _ in splits]
-        lines += [f"### {protocol}", "", "| network | " + " | ".join(columns) + " |"]
-        lines.append("|---|" + "---:|" * len(columns))
-        names = [f"rpm_{loss}_{protocol}" for loss in LOSSES if f"rpm_{loss}_{protocol}" in results]
-        for name in names:
-            cells = [results[name].get(column, {}).get("model") for column in columns]
-            lines.append(f"| `{name}` | " + " | ".join("" if v is None else f"{v:.2f}" for v in cells) + " |")
-        scored = [results[name] for name in names]
-        for row in ("identity", "register"):
-            cells = [next((r[c][row] for r in scored if row in r.get(c, {})), None) for c in columns]
-            if any(value is not None for value in cells):
-                label = "identity (no motion)" if row == "identity" else "`linereg.register`"
-                lines.append(f"| {label} | " + " | ".join("" if v is None else f"{v:.2f}" for v in cells) + " |")
-        counts = [next((r[c]["pairs"] for r in scored if c in r), "") for c in columns]
-        lines += ["", "Pairs: " + ", ".join(f"{c} {n}" for c, n in zip(columns, counts, strict=True)), ""]
+        lines += [f"### {protocol}", "", "| network | " + " | ".join(columns) + " |", "|---|" + "---:|" * len(columns)]
+        keys = [[f"rpm_{loss}_{protocol}/{dataset or 'test'}" for loss in LOSSES] for _, dataset in splits]
+        for loss in LOSSES:
+            name = f"rpm_{loss}_{protocol}"
+            per_seed = []
+            for _, dataset in splits:
+                pairs = dataset or "test"
+                seeds = _seeds_of(scores, rf"recipe/{protocol}/rpm_{loss}_s{{seed}}/{pairs}")
+                shipped = scores.get(f"{name}/{pairs}", {}).get("model")
+                per_seed.append(({0: shipped} if shipped is not None else {}) | seeds)
+            lines.append(f"| `{name}` | " + " | ".join(_per_seed(dict(sorted(v.items()))) for v in per_seed) + " |")
+        lines += [*_reference_rows(scores, keys), ""]
     return "\n".join(lines)
+
+
+def _seeds_of(scores: Mapping[str, Mapping[str, float]], pattern: str) -> dict[int, float]:
+    """``{seed: Err_R}`` of the keys matching ``pattern`` with ``{seed}`` in it."""
+    found = {}
+    for key, value in scores.items():
+        match = re.fullmatch(pattern.replace("{seed}", r"(\d+)"), key)
+        if match:
+            found[int(match.group(1))] = value["model"]
+    return dict(sorted(found.items()))
+
+
+def _per_seed(values: Mapping[int, float]) -> str:
+    """``mean (a, b, c)`` over seeds, or empty."""
+    if not values:
+        return ""
+    listed = ", ".join(f"{v:.2f}" for v in values.values())
+    return f"{np.mean(list(values.values())):.2f} ({listed})" if len(values) > 1 else listed
+
+
+def unseen_body_table(scores: Mapping[str, Mapping[str, float]]) -> str:
+    """Leave one body out: a row per cell, a column per held-out body (mean over seeds, per seed)."""
+    cells = sorted({key.split("/")[2].rsplit("_s", 1)[0] for key in scores if key.startswith("unseen_body/")})
+    if not cells:
+        return ""
+    lines = ["### Human, leave one body out", "", "| cell | " + " | ".join(BODIES) + " | mean over bodies |"]
+    lines.append("|---|" + "---:|" * (len(BODIES) + 1))
+    for cell in cells:
+        per_body = [_seeds_of(scores, rf"unseen_body/{body}/{cell}_s{{seed}}/test") for body in BODIES]
+        seeds = sorted(set.intersection(*(set(values) for values in per_body)))
+        means = {seed: float(np.mean([values[seed] for values in per_body])) for seed in seeds}
+        lines.append(f"| {cell} | " + " | ".join(_per_seed(v) for v in per_body) + f" | {_per_seed(means)} |")
+    keys = [[k for k in scores if k.startswith(f"unseen_body/{body}/")] for body in BODIES]
+    lines += _reference_rows(scores, [*keys, []])
+    return "\n".join([*lines, ""])
+
+
+def _leaf(column: str, dataset: str, *, shipped: bool) -> str:
+    """The cache key's last part of a column of :func:`mixed_table`."""
+    if column.startswith("val"):
+        return f"val_{dataset}"
+    return "test" if shipped and column == IN_PROTOCOL else dataset
+
+
+def mixed_table(scores: Mapping[str, Mapping[str, float]]) -> str:
+    """Airplane, view-vs-view training (the shipped networks) against both pair types (the runs):
+    validation columns first (the choice), then the test splits."""
+    cells = sorted({key.split("/")[1].rsplit("_s", 1)[0] for key in scores if key.startswith("mixed_pairs/")})
+    if not cells:
+        return ""
+    columns = [*VALIDATION, *MIXED_SPLITS]
+    header = "| training pairs | cell | " + " | ".join(column for column, _ in columns) + " |"
+    lines = ["### Airplane, both pair types in training", "", header, "|---|---|" + "---:|" * len(columns)]
+    for cell in cells:
+        view = [scores.get(f"{cell}_airplane/{_leaf(c, d, shipped=True)}", {}).get("model") for c, d in columns]
+        mixed = [_seeds_of(scores, rf"mixed_pairs/{cell}_s{{seed}}/{_leaf(c, d, shipped=False)}") for c, d in columns]
+        lines.append(f"| view vs view (seed 0) | {cell} | {_cells(view)} |")
+        lines.append(f"| both | {cell} | " + " | ".join(_per_seed(values) for values in mixed) + " |")
+    keys = [[k for k in scores if k.endswith("/" + _leaf(c, d, shipped=False))] for c, d in columns]
+    lines += [line.replace("| ", "| | ", 1) for line in _reference_rows(scores, keys)]
+    return "\n".join([*lines, ""])
+
+
+def choice_table(scores: Mapping[str, Mapping[str, float]]) -> str:
+    """Human's line-loss settings: validation (the choice) and test Err_R per setting."""
+    rows = ["rpm_ours_human", *sorted({k.rsplit("/", 1)[0] for k in scores if k.startswith("human_choice/")})]
+    if len(rows) == 1:
+        return ""
+    lines = ["### Human, the line loss's settings", "", "| settings | validation | test |", "|---|---:|---:|"]
+    for row in rows:
+        match = re.search(r"nu(?P<nu>[\d.]+)_lines(?P<lines>\d+)_s(?P<seed>\d+)", row)
+        label = (
+            f"ν0 = {match['nu']}, {int(match['lines'])} lines, seed {match['seed']}" if match else f"`{row}` (seed 0)"
+        )
+        lines.append(
+            f"| {label} | {_cells([scores.get(f'{row}/{split}', {}).get('model') for split in ('val', 'test')])} |"
+        )
+    return "\n".join([*lines, ""])
+
+
+def stretch_table(scores: Mapping[str, Mapping[str, float]]) -> str:
+    """Human with and without anisotropic stretching in training: the unseen bodies (the choice's
+    validation: other folds) and the Human splits, seed 0."""
+    if not any(key.startswith("human_stretch/") for key in scores):
+        return ""
+    columns = ["unseen body (mean of 3 folds)", *(column for column, _ in HUMAN_SPLITS)]
+    lines = ["### Human, stretched bodies in training", "", "| training | cell | " + " | ".join(columns) + " |"]
+    lines.append("|---|---|" + "---:|" * len(columns))
+    for cell in ("rpm_cd", "rpm_ours"):
+        for label, folds, whole in (
+            ("as is", "unseen_body/{body}/" + cell, f"{cell}_human"),
+            ("stretched", "human_stretch/{body}/" + cell, f"human_stretch/all/{cell}"),
+        ):
+            unseen = [scores.get(f"{folds.format(body=body)}_s0/test", {}).get("model") for body in BODIES]
+            mean = float(np.mean(unseen)) if None not in unseen else None
+            suffix = "" if label == "as is" else "_s0"
+            splits = [
+                scores.get(f"{whole}{suffix}/{dataset or 'test'}", {}).get("model") for _, dataset in HUMAN_SPLITS
+            ]
+            lines.append(f"| {label} | {cell} | {_cells([mean, *splits])} |")
+    return "\n".join([*lines, ""])
 
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--out", type=Path, required=True, help="folder of the cached scores and table.md")
-    parser.add_argument("--models", nargs="*", default=[], help="name=checkpoint pairs (default: the shipped ones)")
+    parser.add_argument("--runs", type=Path, help="the runs of scripts/reproduce_generalization.sh")
     parser.add_argument("--register", action="store_true", help="also score linereg.register on the same pairs")
     args = parser.parse_args(argv)
-    models = dict(item.split("=", 1) for item in args.models) or {
-        f"rpm_{loss}_{protocol}": f"rpm_{loss}_{protocol}" for protocol in SPLITS for loss in LOSSES
-    }
-    results: dict[str, dict[str, dict[str, float]]] = {}
-    for name, checkpoint in models.items():
-        protocol = name.rsplit("_", 1)[-1]
-        for column, dataset in SPLITS.get(protocol, []):
-            cached = args.out / name / f"{dataset or 'test'}.json"
-            if not cached.is_file():
-                start = time.perf_counter()
-                shared = args.out / "register" / f"{protocol}_{dataset or 'test'}.json" if args.register else None
-                value = score(checkpoint, dataset, register=shared)
-                cached.parent.mkdir(parents=True, exist_ok=True)
-                cached.write_text(json.dumps(value, indent=2))
-                print(f"{name} on {column}: {value['model']:.2f} deg ({time.perf_counter() - start:.0f} s)", flush=True)
-            results.setdefault(name, {})[column] = json.loads(cached.read_text())
-    (args.out / "table.md").write_text(table(results))
-    print(table(results))
+    jobs = shipped_jobs()
+    if args.runs is not None:
+        mixed = {name: str(folder) for name, folder in run_folders(args.runs, "mixed_pairs").items()}
+        shipped = {f"rpm_{loss}_airplane": f"rpm_{loss}_airplane" for loss in LOSSES}
+        jobs += run_jobs(args.runs) + validation_jobs({**shipped, **mixed} if mixed else {})
+        jobs += seed_jobs(args.runs) + choice_jobs(args.runs) + stretch_jobs(args.runs)
+    scores = run_all(jobs, args.out, args.register)
+    tables = (shipped_table, unseen_body_table, mixed_table, choice_table, stretch_table)
+    text = "\n".join(part for part in (table(scores) for table in tables) if part)
+    (args.out / "table.md").write_text(text)
+    print(text)
     return 0
 
 

@@ -303,11 +303,8 @@ TRAINING_GROUPS = (
     "paths",
     "protocol",
     "recipe",
-    "recipe_protocol",
-    "recipe_loss",
-    "recipe_cell",
-    "recipe_cell_loss",
     "recipe_model",
+    "cell",
     "scheduler",
 )
 # Interpolations a training file may hold: links to the run's own values, never to a recipe or to
@@ -362,11 +359,8 @@ def test_specialisation_files_name_existing_choices():
     recipes, protocols = _options("recipe"), _options("protocol")
     keys = {
         "curriculum": {f"{r}_{p}" for r in recipes for p in protocols},
-        "recipe_protocol": {f"{r}_{p}" for r in recipes for p in protocols},
-        "recipe_loss": {f"{r}_{loss}" for r in recipes for loss in _options("loss")},
         "recipe_model": {f"{r}_{m}" for r in recipes for m in _options("model")},
-        "recipe_cell": {f"{r}_{p}_{m}" for r in recipes for p in protocols for m in _options("model")},
-        "recipe_cell_loss": {f"{r}_{p}_{loss}" for r in recipes for p in protocols for loss in _options("loss")},
+        "cell": {f"{r}_{p}_{loss}" for r in recipes for p in protocols for loss in _options("loss")},
     }
     assert keys["curriculum"] <= set(_options("curriculum"))  # every recipe x protocol has its stages
     for group, names in keys.items():

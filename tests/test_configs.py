@@ -73,7 +73,7 @@ def test_default_is_the_label_free_easy_pose_recipe():
 @pytest.mark.parametrize("experiment", EXPERIMENTS)
 def test_recipe_cpu_sets_the_schedule_of_every_experiment_and_protocol(experiment):
     """The default recipe=cpu sets the schedule of every experiment; a protocol adapts its stages
-    (configs/curriculum/cpu_<protocol>.yaml), a backbone or loss its own values (configs/recipe_*/)."""
+    (configs/curriculum/cpu_<protocol>.yaml), a backbone or loss its own values (configs/cell/cpu_*.yaml)."""
     stages = {
         "": [("easy", 6, "easy")],
         "airplane": [("easy", 4, "easy")],
@@ -85,7 +85,7 @@ def test_recipe_cpu_sets_the_schedule_of_every_experiment_and_protocol(experimen
         cfg = compose_config(overrides=[f"experiment={experiment}", *extra])
         curriculum = Curriculum.from_config(cfg.curriculum)
         if experiment.startswith("dcp") and protocol == "airplane":
-            expected = [("easy", 4, "easy"), ("full", 4, None)]  # configs/recipe_cell/cpu_airplane_dcp_v2.yaml
+            expected = [("easy", 4, "easy"), ("full", 4, None)]  # configs/cell/cpu_airplane_dcp_*.yaml
         assert [(s.name, s.epochs, s.variant) for s in curriculum.stages] == expected, protocol
         rates = [s.learning_rate(cfg.optimizer.lr) for s in curriculum.stages]
         assert all(s.subset is None for s in curriculum.stages) and rates == pytest.approx([1e-3] * len(rates))

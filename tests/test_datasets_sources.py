@@ -150,6 +150,21 @@ def test_mixed_target_alternates_view_and_whole_pairs_of_the_same_views(mesh_roo
         pairs("both")
 
 
+def test_anisotropic_scale_stretches_both_clouds_alike(mesh_root):
+    def pair(anisotropic_scale: float):
+        protocol = {"name": "human", "num_views": 2, "anisotropic_scale": anisotropic_scale}
+        config = {"name": "mesh_folder", "root": str(mesh_root), "categories": "lamp", "protocol": protocol}
+        return build_dataset(config)[1]
+
+    plain, stretched = pair(0.0), pair(0.3)
+    assert _aligned_fraction(stretched, 0.06) > 0.8  # the label still aligns the stretched pair
+    extents = [np.ptp(p.tgt_xyz @ p.gt_transform[:3, :3], axis=0) for p in (plain, stretched)]
+    assert not np.allclose(extents[0] / extents[0].max(), extents[1] / extents[1].max(), atol=0.02)
+    np.testing.assert_allclose(np.linalg.norm(stretched.src_normals, axis=1), 1, atol=1e-5)
+    with pytest.raises(ValueError, match=r"anisotropic_scale must be in \[0, 1\)"):
+        pair(1.0)
+
+
 def test_mesh_folder_errors(tmp_path, mesh_root):
     with pytest.raises(FileNotFoundError, match="mesh folder not found"):
         build_dataset({"name": "mesh_folder", "root": str(tmp_path / "nowhere")})

@@ -58,7 +58,7 @@ def test_every_cell_composes_with_one_schedule(protocol):
             assert alignment.name == "line_intersection" and alignment.weight == (0 if loss == "reg" else 1)
             assert cfg.loss.num_lines == 5000
             assert cfg.loss.nu0 == (2.0 if loss == "ours_nu2" else None)  # None: the paper's 0.5
-        if backbone == "rpm" and loss != "gt":  # pinned: not the recipe's 0.3 (configs/recipe_loss/cpu_rpm_*.yaml)
+        if backbone == "rpm" and loss != "gt":  # pinned: not the recipe's 0.3 (configs/cell/cpu_*_rpm_*.yaml)
             assert cfg.loss.terms.outlier.weight == 1
         if backbone == "dcp":
             assert cfg.model.emb_dims == 256 and cfg.model.ff_dims == 512
@@ -157,7 +157,7 @@ MEASURED_ENV = {
     "human": {"EXTRA": "curriculum.stages.full.epochs=4 curriculum.stages.full.lr_scale=1.0", "NUM_LINES": "20000"},
     "real": {"EXTRA": "curriculum.stages.full.epochs=4 curriculum.stages.full.lr_scale=1.0"},
 }
-# A backbone's own file of a protocol's recipe (configs/recipe_cell/cpu_airplane_dcp_v2.yaml).
+# A backbone's own stages under a protocol's recipe (configs/cell/cpu_airplane_dcp_*.yaml).
 MEASURED_ENV_OF_BACKBONE = {
     ("airplane", "dcp"): {"EXTRA": MEASURED_ENV["human"]["EXTRA"], "NUM_LINES": "20000"},  # Human's full-range stage
 }

@@ -1,0 +1,66 @@
+"""``scripts/reproduce_generalization.sh``: the runs behind the generalization tables are the README's
+cell commands with a dataset choice, every fold and seed, and each resolves to a training config."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+from pathlib import Path
+
+from hydra import compose, initialize_config_dir
+
+ROOT = Path(__file__).resolve().parent.parent
+SCRIPT = ROOT / "scripts" / "reproduce_generalization.sh"
+BODIES = {"human_man", "human_neutral", "human_woman"}
+
+
+def _dry(**env: str) -> subprocess.CompletedProcess:
+    return subprocess.run(
+        ["bash", str(SCRIPT)], env=dict(os.environ) | {"DRY": "1", **env}, capture_output=True, text=True
+    )
+
+
+def _parts(folder: str) -> tuple[str, str, str, str]:
+    """``(step, body or "", cell or settings, seed)`` of a run folder ``out/<step>/[<body>/]<name>_s<seed>``."""
+    parts = Path(folder).parts
+    name, seed = parts[-1].rsplit("_s", 1)
+    return parts[1], parts[2] if len(parts) == 4 else "", name, seed
+
+
+def test_every_fold_and_seed_of_every_step_is_a_cell_command_with_a_dataset():
+    result = _dry(OUT="out", SEEDS="0 1", CELLS="rpm_cd rpm_ours")
+    runs = dict(line.split(" ", 1) for line in result.stdout.splitlines())
+    steps = [_parts(folder)[0] for folder in runs]
+    assert {step: steps.count(step) for step in set(steps)} == {
+        "unseen_body": 3 * 2 * 2,  # bodies x cells x seeds
+        "mixed_pairs": 2 * 2,
+        "human_stretch": 4 * 2 * 2,  # three folds and all bodies
+        "human_choice": 3 * 2,  # three settings of RPM-Ours
+        "recipe": 2 * 2 * 2,  # Human and Real x cells x the two seeds besides the shipped one
+    }
+    for folder, args in runs.items():
+        step, body, name, seed = _parts(folder)
+        cell = "rpm_ours" if step == "human_choice" else name
+        if step == "recipe":
+            assert args == f"experiment={cell} protocol={body} seed={seed}" and seed in ("1", "2")
+        assert args.startswith(f"experiment={cell} ") and args.endswith(f" seed={seed}")
+        if body in BODIES:
+            assert f"protocol=human dataset=human_unseen_body dataset.held_out={body} " in args
+        stretched = "+dataset.splits.train.protocol.anisotropic_scale=0.2" in args
+        assert stretched == (step == "human_stretch")
+        if step == "mixed_pairs":
+            assert "protocol=airplane dataset=airplane_mixed_pairs " in args
+        if step == "human_choice":
+            nu, lines = name.removeprefix("rpm_ours_nu").split("_lines")
+            assert f"loss.nu0={nu} loss.num_lines={lines} " in args
+    with initialize_config_dir(str(ROOT / "configs"), version_base="1.3"):
+        for args in runs.values():
+            cfg = compose("train", overrides=[*args.split(), f"paths.root_dir={ROOT}"])
+            assert cfg.dataset.name in ("mesh_folder", "modelnet40", "rgbd_sequence")
+
+
+def test_an_unknown_step_is_one_line_and_exit_code_2():
+    result = _dry(STEPS="unseen_body leave_two_out")
+    assert result.returncode == 2 and result.stdout == ""
+    steps = "unseen_body, mixed_pairs, human_stretch, human_choice, seeds"
+    assert result.stderr.strip() == f"reproduce_generalization.sh: error: unknown step 'leave_two_out' ({steps})"

@@ -60,7 +60,8 @@ from linereg.checkpoint import find_checkpoint, load_checkpoint
 from linereg.checks import nearest_rotation
 from linereg.datasets import build_dataset
 from linereg.datasets.fragments import DEFAULT_BINS, FragmentSettings, fragment_pairs, overlap_ratio
-from linereg.datasets.protocol import ScanSettings, Shape, ShapeViews, build_protocol, finish_scan_pair
+from linereg.datasets.protocol import Shape, ShapeViews, build_protocol
+from linereg.datasets.scan_pairs import ScanSettings, finish_scan_pair
 from linereg.datasets.splits import build_split
 from linereg.datasets.threedmatch import NoPairsError, ThreeDMatchPairs, find_gt_log
 from linereg.io import read_mesh

@@ -49,7 +49,6 @@ import torch
 from linereg.checks import nearest_rotation
 from linereg.datasets.cache import settings_key
 from linereg.datasets.formats import Intrinsics, read_depth_image
-from linereg.datasets.protocol import ScanSettings, finish_scan_pair
 from linereg.datasets.rgbd import (
     DEFAULT_DEPTH_SCALE,
     Frame,
@@ -60,6 +59,7 @@ from linereg.datasets.rgbd import (
     _tum_frames,
     depth_to_points,
 )
+from linereg.datasets.scan_pairs import ScanSettings, finish_scan_pair
 from linereg.knn import NearestNeighbors
 from linereg.metrics import rotation_error_deg
 from linereg.pointcloud import estimate_normals, open3d_cloud

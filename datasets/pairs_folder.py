@@ -12,7 +12,7 @@ from pathlib import Path
 from typing import Any
 
 from linereg.datasets.base import DATASETS, PairDataset, item_rng
-from linereg.datasets.protocol import ScanSettings, finish_scan_pair
+from linereg.datasets.scan_pairs import ScanSettings, finish_scan_pair
 from linereg.io import POINT_CLOUD_SUFFIXES, read_point_cloud, read_transform
 from linereg.structures import PairSample
 

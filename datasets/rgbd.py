@@ -42,7 +42,7 @@ from linereg.datasets.formats import (
     read_pose_list,
     read_pose_matrix,
 )
-from linereg.datasets.protocol import ScanSettings, finish_scan_pair
+from linereg.datasets.scan_pairs import ScanSettings, finish_scan_pair
 from linereg.se3 import compose, inverse
 from linereg.structures import PairSample
 

@@ -22,7 +22,7 @@ import numpy as np
 from linereg.datasets.base import DATASETS, PairDataset, item_rng
 from linereg.datasets.formats import read_log, read_overlap_log
 from linereg.datasets.fragments import overlap_ratio
-from linereg.datasets.protocol import ScanSettings, finish_scan_pair
+from linereg.datasets.scan_pairs import ScanSettings, finish_scan_pair
 from linereg.io import read_point_cloud
 from linereg.structures import PairSample
 

@@ -7,17 +7,21 @@ sphere and a room in metres: the voxel is the point spacing of an FPS subset of
 ``FeatureOptions.points`` points of the target (:func:`feature_voxel`), so that the grid holds
 about that many points whatever the units. Normals and FPFH use Open3D's usual radii of 2 and
 5 voxels (Rusu et al., ICRA 2009; Open3D's global-registration pipeline).
+
+The module imports neither torch nor the torch-based :mod:`linereg.pointcloud` (it builds its
+Open3D clouds itself): the ``register`` command's global stage loads Open3D, and torch's import
+would cost it more than the features do.
 """
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
 from linereg.fps import farthest_point_subset as fps
-from linereg.pointcloud import open3d_cloud
 from linereg.registration.evaluation import point_spacing
 
 
@@ -70,7 +74,8 @@ def fpfh(points: np.ndarray, voxel: float, options: FeatureOptions) -> tuple[Any
     import open3d as o3d
 
     search = o3d.geometry.KDTreeSearchParamHybrid
-    cloud = open3d_cloud(points).voxel_down_sample(voxel)
+    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(points, dtype=np.float64)))
+    cloud = cloud.voxel_down_sample(voxel)
     cloud.estimate_normals(search(radius=options.normal_radius * voxel, max_nn=30))
     features = o3d.pipelines.registration.compute_fpfh_feature(
         cloud, search(radius=options.feature_radius * voxel, max_nn=options.max_neighbours)
@@ -78,54 +83,96 @@ def fpfh(points: np.ndarray, voxel: float, options: FeatureOptions) -> tuple[Any
     return cloud, features
 
 
+class FeatureMatcher:
+    """FPFH features of a source and a target, computed once, and the candidates matched from them.
+
+    :meth:`candidates` yields one source-to-target candidate at a time (each RANSAC run, then FGR),
+    so that a caller can stop as soon as one settles its question; every candidate reuses the same
+    grids and features.
+
+    Args:
+        src, tgt: ``(N, 3)`` and ``(M, 3)`` clouds (any units).
+        options: :class:`FeatureOptions`.
+
+    Attributes:
+        voxel: the grid's voxel (:func:`feature_voxel` of the target).
+        src_cloud, tgt_cloud: the grids (Open3D clouds with normals).
+    """
+
+    def __init__(self, src: np.ndarray, tgt: np.ndarray, options: FeatureOptions | None = None) -> None:
+        self.options = options or FeatureOptions()
+        self.voxel = feature_voxel(tgt, self.options.points)
+        (self.src_cloud, self._src_features), (self.tgt_cloud, self._tgt_features) = (
+            fpfh(points, self.voxel, self.options) for points in (src, tgt)
+        )
+
+    def count(self) -> int:
+        """How many candidates :meth:`candidates` yields."""
+        return len(self.options.mutual) * self.options.seeds + int(self.options.fgr)
+
+    def ransac(self, mutual: bool, seed: int) -> np.ndarray:
+        """The ``(4, 4)`` candidate of one RANSAC run on the (``mutual``) feature matches, seeded with ``seed``."""
+        import open3d as o3d
+
+        registration = o3d.pipelines.registration
+        options = self.options
+        distance = options.distance * self.voxel
+        checkers = [
+            registration.CorrespondenceCheckerBasedOnEdgeLength(options.edge_similarity),
+            registration.CorrespondenceCheckerBasedOnDistance(distance),
+        ]
+        o3d.utility.random.seed(seed)
+        found = registration.registration_ransac_based_on_feature_matching(
+            self.src_cloud,
+            self.tgt_cloud,
+            self._src_features,
+            self._tgt_features,
+            mutual,
+            distance,
+            registration.TransformationEstimationPointToPoint(False),
+            3,
+            checkers,
+            registration.RANSACConvergenceCriteria(options.iterations, options.confidence),
+        )
+        return np.asarray(found.transformation)
+
+    def fgr(self) -> np.ndarray:
+        """The ``(4, 4)`` Fast Global Registration candidate (Zhou et al., ECCV 2016) of the same features."""
+        import open3d as o3d
+
+        registration = o3d.pipelines.registration
+        found = registration.registration_fgr_based_on_feature_matching(
+            self.src_cloud,
+            self.tgt_cloud,
+            self._src_features,
+            self._tgt_features,
+            registration.FastGlobalRegistrationOption(
+                maximum_correspondence_distance=self.options.distance * self.voxel
+            ),
+        )
+        return np.asarray(found.transformation)
+
+    def candidates(self, seed: int = 0) -> Iterator[np.ndarray]:
+        """The ``(4, 4)`` candidates one at a time: RANSAC per ``mutual`` entry and seed (run ``k``
+        of an entry seeded with ``seed + k``), then FGR when ``fgr``."""
+        for mutual in self.options.mutual:
+            for run in range(self.options.seeds):
+                yield self.ransac(mutual, seed + run)
+        if self.options.fgr:
+            yield self.fgr()
+
+
 def global_candidates(
     src: np.ndarray, tgt: np.ndarray, options: FeatureOptions | None = None, seed: int = 0
 ) -> tuple[np.ndarray, dict[str, Any]]:
-    """Source-to-target candidates ``(K, 4, 4)`` of FPFH + RANSAC (one per ``mutual`` entry and seed)
-    and FGR, on the voxel grid of :func:`feature_voxel`; and ``{"voxel", "src_cloud", "tgt_cloud"}``
-    (the grids: Open3D clouds with normals).
+    """Every candidate of :meth:`FeatureMatcher.candidates` as ``(K, 4, 4)``, and
+    ``{"voxel", "src_cloud", "tgt_cloud"}`` (the grids: Open3D clouds with normals).
 
     Args:
         src, tgt: ``(N, 3)`` and ``(M, 3)`` clouds (any units).
         options: :class:`FeatureOptions`.
         seed: seed of the first RANSAC run (Open3D's global random generator).
     """
-    import open3d as o3d
-
-    options = options or FeatureOptions()
-    registration = o3d.pipelines.registration
-    voxel = feature_voxel(tgt, options.points)
-    (src_cloud, src_features), (tgt_cloud, tgt_features) = (fpfh(points, voxel, options) for points in (src, tgt))
-    distance = options.distance * voxel
-    checkers = [
-        registration.CorrespondenceCheckerBasedOnEdgeLength(options.edge_similarity),
-        registration.CorrespondenceCheckerBasedOnDistance(distance),
-    ]
-    candidates = []
-    for mutual in options.mutual:
-        for run in range(options.seeds):
-            o3d.utility.random.seed(seed + run)
-            found = registration.registration_ransac_based_on_feature_matching(
-                src_cloud,
-                tgt_cloud,
-                src_features,
-                tgt_features,
-                mutual,
-                distance,
-                registration.TransformationEstimationPointToPoint(False),
-                3,
-                checkers,
-                registration.RANSACConvergenceCriteria(options.iterations, options.confidence),
-            )
-            candidates.append(np.asarray(found.transformation))
-    if options.fgr:
-        found = registration.registration_fgr_based_on_feature_matching(
-            src_cloud,
-            tgt_cloud,
-            src_features,
-            tgt_features,
-            registration.FastGlobalRegistrationOption(maximum_correspondence_distance=distance),
-        )
-        candidates.append(np.asarray(found.transformation))
-    grids = {"voxel": voxel, "src_cloud": src_cloud, "tgt_cloud": tgt_cloud}
-    return np.stack(candidates), grids
+    matcher = FeatureMatcher(src, tgt, options)
+    grids = {"voxel": matcher.voxel, "src_cloud": matcher.src_cloud, "tgt_cloud": matcher.tgt_cloud}
+    return np.stack(list(matcher.candidates(seed))), grids

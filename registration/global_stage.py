@@ -1,15 +1,21 @@
-"""The ``register`` default's stage for doubtful pairs: global candidates and a dense judgement.
+"""The ``register`` default's stage for doubtful scans: the dense check, global candidates and a dense judgement.
 
 When the first round of :class:`~linereg.registration.robust.RobustRegistration` is doubtful on a
-target with more points than the solver's subset (partly overlapping scans), FPFH + RANSAC and FGR candidates
-(:func:`~linereg.registration.features.global_candidates`) join the local ones, and every
-candidate is judged against a *dense* target: up to ``GlobalOptions.dense_points`` FPS points of
-the whole target instead of the solver's subset. On a room scanned at 1 cm, a subset of 2048
-points is 6 cm apart; a wrong pose that slides the overlap along walls and floors then fits the
-subset as well as the right one. Against the dense target each candidate gets a Welsch IRLS polish
-down to ``dense_end`` dense spacings (:func:`dense_polish`) and the lowest fixed-scale Welsch
-cost at that last scale (:func:`dense_costs`) chooses: one rule for every candidate, whatever
-produced it.
+target with more points than the solver's subset (partly overlapping scans), its candidates are
+judged against a *dense* target: up to ``GlobalOptions.dense_points`` FPS points of the whole
+target instead of the solver's subset. On a room scanned at 1 cm, a subset of 2048 points is 6 cm
+apart; a wrong pose that slides the overlap along walls and floors then fits the subset as well as
+the right one. Against the dense target each candidate gets a Welsch IRLS polish down to
+``dense_end`` dense spacings (:func:`dense_polish`) and the lowest fixed-scale Welsch cost at that
+last scale (:func:`dense_costs`) chooses: one rule for every candidate, whatever produced it.
+
+That judgement of the first round's candidates alone is the *dense check*: its choice is
+doubtful (:func:`dense_doubt`) when it fails the confidence test of :func:`linereg.register`
+against the dense target or a distinct rival scores nearly as well. A partly overlapping scan
+always fails the subset's fitness test; the dense check keeps the right answers and sends the
+wrong ones on (``docs/studies/doubt-test.md`` measures how often each rule errs), and only a
+doubtful check brings FPFH + RANSAC and FGR candidates
+(:class:`~linereg.registration.features.FeatureMatcher`), one at a time, until the choice passes.
 """
 
 from __future__ import annotations
@@ -22,11 +28,11 @@ import numpy as np
 from linereg.fps import farthest_point_subset as fps
 from linereg.knn import NearestNeighbors
 from linereg.registration.evaluation import assess_registration, point_spacing
-from linereg.registration.poses import Poses, as_matrices
+from linereg.registration.poses import Poses, as_matrices, rotation_gap_deg
 from linereg.registration.welsch import fixed_scale_cost, welsch_irls
 
 if TYPE_CHECKING:
-    from linereg.registration.robust_options import GlobalOptions
+    from linereg.registration.robust_options import GlobalOptions, SelectOptions
 
 
 @dataclass(frozen=True)
@@ -75,3 +81,20 @@ def dense_confident(poses: Poses, best: int, src: np.ndarray, dense: DenseTarget
     (:func:`~linereg.registration.evaluation.assess_registration`) against the dense target."""
     transform = as_matrices((poses[0][best : best + 1], poses[1][best : best + 1]))[0]
     return assess_registration(src, dense.points, transform).confident
+
+
+def dense_doubt(
+    select: SelectOptions, poses: Poses, costs: np.ndarray, src: np.ndarray, dense: DenseTarget
+) -> tuple[bool, float]:
+    """``(doubtful, margin)`` of the lowest dense cost. The score ``1 - cost`` is the soft share of
+    inliers; the choice is doubtful when it fails the confidence test of :func:`linereg.register`
+    or a candidate more than ``distinct_deg`` away scores more than ``1 / doubt_ratio`` of its score;
+    ``margin`` is ``1 - rival score / best score`` (1 without a rival)."""
+    scores = 1.0 - costs
+    best = int(scores.argmax())
+    confident = dense_confident(poses, best, src, dense)
+    rivals = rotation_gap_deg(poses[0], poses[0][best]) > select.distinct_deg
+    if not rivals.any():
+        return not confident, 1.0
+    rival, best_score = float(scores[rivals].max()), float(scores[best])
+    return not confident or rival * select.doubt_ratio > best_score, 1.0 - rival / max(best_score, 1e-12)

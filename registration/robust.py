@@ -22,10 +22,14 @@ No torch on this path (nor Open3D, numba or matplotlib): ``linereg.register`` an
    scale; ``doubtful_select``): every candidate is a local minimum of that objective, while the
    coarser selection scale rewards a wrong pose that brings more of a partly overlapping view
    near the target.
-5. After a doubtful first round on a target with more points than the subset (a scan), the global
-   stage replaces rounds 2 and 3 as the next step (:mod:`~linereg.registration.global_stage`): FPFH +
-   RANSAC and FGR candidates join, every candidate is polished against a dense target and the
-   lowest dense cost chooses; rounds 2 and 3 follow only while that choice is doubtful, their
+5. After a doubtful first round on a target with more points than the subset (a scan), the dense
+   check replaces rounds 2 and 3 as the next step (:mod:`~linereg.registration.global_stage`):
+   the first round's candidates are polished against a dense target and judged by their dense
+   costs, and the best is doubtful when it fails the confidence test of :func:`linereg.register`
+   against that target or a distinct rival scores nearly as well. The subset test fires on every
+   partly overlapping scan; this one only on wrong answers, which then bring FPFH + RANSAC and FGR
+   candidates (features computed once), one at a time, each polished and judged the same way,
+   until the choice is not doubtful. Rounds 2 and 3 follow only while it still is, their
    candidates judged the same way, and the choice ends with plane-to-plane steps against the
    dense target instead of step 6. One flow runs every pair: from this step on, its doubt tests
    and its final choice read the dense costs.
@@ -48,7 +52,7 @@ import sys
 import time
 import warnings
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any, NamedTuple
 
 import numpy as np
@@ -58,7 +62,7 @@ from linereg.fps import farthest_point_subset as fps
 from linereg.knn import NearestNeighbors
 from linereg.registration.coarse import cdw_adam, cdw_irls
 from linereg.registration.evaluation import point_spacing
-from linereg.registration.global_stage import DenseTarget, dense_confident, dense_costs, dense_polish, dense_target
+from linereg.registration.global_stage import DenseTarget, dense_costs, dense_doubt, dense_polish, dense_target
 from linereg.registration.methods import METHODS, MethodResult, translation
 from linereg.registration.planes import plane_to_plane_irls, surface_covariances
 from linereg.registration.poses import (
@@ -72,7 +76,7 @@ from linereg.registration.poses import (
     spread_rotations,
 )
 from linereg.registration.robust_options import RobustOptions, SelectOptions, robust_options
-from linereg.registration.robust_result import GLOBAL, STAGES, Candidate, RobustResult, Step
+from linereg.registration.robust_result import CHECK, GLOBAL, STAGES, Candidate, RobustResult, Step
 from linereg.registration.search import pose_search
 from linereg.registration.welsch import fine_scales, fixed_scale_cost, polish_scales, welsch_irls
 
@@ -171,7 +175,8 @@ class _Pool:
 
 
 class _Verdict(NamedTuple):
-    """The doubt test of the best candidate: :func:`doubt`, or :func:`_dense_doubt` (``fitness`` ``None``)."""
+    """The doubt test of the best candidate: :func:`doubt`, or
+    :func:`~linereg.registration.global_stage.dense_doubt` (``fitness`` ``None``)."""
 
     doubtful: bool
     margin: float
@@ -189,6 +194,8 @@ class _Choice:
         verdict: the doubt test of that choice.
         history: every step that ran.
         dense: the dense target, when the dense judgement chose.
+        checked: the first round's answer the dense check judged, with its dense cost (``None``
+            when the check did not run).
     """
 
     pool: _Pool
@@ -199,18 +206,20 @@ class _Choice:
     verdict: _Verdict
     history: tuple[Step, ...]
     dense: DenseTarget | None
+    checked: tuple[_Pool, float] | None = None
 
 
 class RobustRegistration:
     """The ``register`` default (numpy/scipy): multi-start IRLS on CD-W, Welsch IRLS polish,
-    fixed-scale selection; when doubtful, Adam on CD-W, then a pose search (module docstring).
+    fixed-scale selection; when doubtful, on a scan the dense check and, if that doubts too, global
+    candidates; then Adam on CD-W and a pose search (module docstring).
 
     :meth:`solve` returns a :class:`~linereg.registration.robust_result.RobustResult`; calling the
     method returns a :class:`~linereg.registration.methods.MethodResult` whose ``info`` is
     :attr:`RobustResult.info <linereg.registration.robust_result.RobustResult.info>`:
     ``doubtful`` (the final choice fails the doubt test), ``margin`` (``1 - best cost / cost of
     the best distinct rival``, by the cost that chose; 1 without a rival), ``global_candidates``
-    (FPFH + RANSAC and FGR candidates found; 0 when that stage did not run), ``cost`` (the chosen
+    (FPFH + RANSAC and FGR candidates that ran; 0 when that stage did not run), ``cost`` (the chosen
     candidate's cost: at ``select_nu``, or the dense cost), ``rounds``, ``starts`` (coarse
     candidates of all rounds: starts x coarse sides, searched poses), ``candidates`` (those left
     at the end), ``selection`` (``"fixed"``; ``"polish"`` after a doubtful first round:
@@ -290,6 +299,10 @@ class RobustRegistration:
             matrix[:3, 3] *= radius
             return translation(c_tgt) @ matrix @ translation(-c_src)
 
+        checked = None
+        if choice.checked is not None:
+            answer, cost = choice.checked
+            checked = Candidate(to_input(as_matrices(answer.poses)[0]), cost, cost, *answer.origins[0])
         candidates = tuple(
             Candidate(to_input(matrix), float(cost), float(value), *origin)
             for matrix, cost, value, origin in zip(
@@ -304,6 +317,7 @@ class RobustRegistration:
             doubtful=choice.verdict.doubtful,
             margin=choice.verdict.margin,
             history=choice.history,
+            checked=checked,
             fine=fine,
             coincident=coincident,
             plane=plane,
@@ -335,42 +349,39 @@ class RobustRegistration:
 
     def _choose(self, pair: _Pair) -> _Choice:
         """Rounds until the choice is not doubtful (or ``rounds`` ran). After a doubtful first round
-        on a target with more points than the subset (a scan), the global candidates join and the
-        dense judgement replaces the selection cost for every later step (module docstring, 4-5)."""
-        select = self.options.select
+        on a target with more points than the subset (a scan), the dense check judges the first
+        round's answer; only a doubtful check brings the global candidates, and the dense
+        judgement replaces the selection cost for every later step (module docstring, 4-5)."""
+        select, settings = self.options.select, self.options.global_stage
         pool, costs, starts = self._next_round(1, pair)
         verdict = self._verdict(pool, costs, pair, None)
         history = [Step(1, STAGES[1], starts, len(pool.origins), "fixed", verdict.doubtful, verdict.margin)]
-        dense = None
-        if (
-            verdict.doubtful
-            and self.options.global_stage.candidates == "doubtful"
-            and len(pair.tgt_whole) > len(pair.tgt)
-        ):
-            self._stage("first round doubtful: FPFH + RANSAC and FGR candidates")
+        dense, checked = None, None
+        if verdict.doubtful and settings.candidates != "never" and len(pair.tgt_whole) > len(pair.tgt):
+            self._stage("first round doubtful: dense check of its answer")
             finest = float(pair.nus[-1]) if len(pair.nus) else np.inf
-            dense = dense_target(pair.tgt_whole, self.options.global_stage, finest)
-            found = self._global_round(pair, dense)
-            self._stage(f"dense judgement of {len(pool.origins) + len(found.origins)} candidates")
-            pool, costs = self._judge(pool.joined(found), pair, dense)
-            verdict = self._verdict(pool, costs, pair, dense)
-            history.append(Step(1, GLOBAL, 0, len(found.origins), "dense", verdict.doubtful, verdict.margin))
+            dense = dense_target(pair.tgt_whole, settings, finest)
+            pool, costs = self._judge(None, pool, pair, dense)
+            verdict, checked = self._verdict(pool, costs, pair, dense), (pool.taken(np.arange(1)), float(costs[0]))
+            history.append(Step(1, CHECK, 0, 0, "dense", verdict.doubtful, verdict.margin))
+            if verdict.doubtful or settings.candidates == "always":
+                pool, costs, verdict, step = self._global_round(pool, costs, verdict, pair, dense)
+                history.append(step)
         rounds = 1
         while verdict.doubtful and rounds < select.rounds:
             rounds += 1
             self._stage(f"{'doubtful' if dense is None else 'still doubtful'}: round {rounds} ({STAGES[rounds]})")
             more, more_costs, starts = self._next_round(rounds, pair)
-            pool = pool.joined(more)
             if dense is None:
-                costs = np.concatenate([costs, more_costs])
+                pool, costs = pool.joined(more), np.concatenate([costs, more_costs])
             else:
-                pool, costs = self._judge(pool, pair, dense)
+                pool, costs = self._judge((pool, costs), more, pair, dense)
             verdict = self._verdict(pool, costs, pair, dense)
             judgement = "fixed" if dense is None else "dense"
             history.append(
                 Step(rounds, STAGES[rounds], starts, len(more.origins), judgement, verdict.doubtful, verdict.margin)
             )
-        return self._select(pool, costs, verdict, tuple(history), pair, dense)
+        return replace(self._select(pool, costs, verdict, tuple(history), pair, dense), checked=checked)
 
     def _select(
         self,
@@ -393,11 +404,12 @@ class RobustRegistration:
         return _Choice(pool, costs, ranking, best, selection, verdict, history, dense)
 
     def _verdict(self, pool: _Pool, costs: np.ndarray, pair: _Pair, dense: DenseTarget | None) -> _Verdict:
-        """The doubt test of the lowest cost: :func:`doubt`, or :func:`_dense_doubt` after the dense judgement."""
+        """The doubt test of the lowest cost: :func:`doubt`, or
+        :func:`~linereg.registration.global_stage.dense_doubt` after the dense judgement."""
         select = self.options.select
         if dense is None:
             return _Verdict(*doubt(select, pool.poses, costs, pair.src, pair.tgt_index, pair.inlier_distance))
-        return _Verdict(*_dense_doubt(select, pool.poses, costs, pair.src, dense), None)
+        return _Verdict(*dense_doubt(select, pool.poses, costs, pair.src, dense), None)
 
     def _next_round(self, number: int, pair: _Pair) -> tuple[_Pool, np.ndarray, int]:
         """Round ``number`` (:meth:`_round`): its candidates with their origins, their costs ``(K,)``
@@ -444,27 +456,58 @@ class RobustRegistration:
         best = distinct_best(rotations, costs, search.keep, self.options.select.distinct_deg)
         return (rotations[best], translations[best]), np.zeros(len(best), dtype=bool)
 
-    def _global_round(self, pair: _Pair, dense: DenseTarget) -> _Pool:
-        """FPFH + RANSAC and FGR candidates from ``dense_points`` FPS points of each cloud, each with the polish."""
-        from linereg.registration.features import FeatureOptions, global_candidates
+    def _global_round(
+        self, pool: _Pool, costs: np.ndarray, verdict: _Verdict, pair: _Pair, dense: DenseTarget
+    ) -> tuple[_Pool, np.ndarray, _Verdict, Step]:
+        """FPFH + RANSAC and FGR candidates (:class:`~linereg.registration.features.FeatureMatcher`:
+        the features of the whole source and of the dense target, computed once), one at a time:
+        each gets the polish and joins the dense judgement of ``pool`` (dense ``costs``, ``verdict``),
+        and the stage stops at the first one after which the choice is not doubtful. Returns the
+        judged candidates, their dense costs, the verdict and the stage's
+        :class:`~linereg.registration.robust_result.Step`."""
+        from linereg.registration.features import FeatureMatcher, FeatureOptions
 
         settings = self.options.global_stage
-        src = fps(pair.src_whole, settings.dense_points)
-        found, _ = global_candidates(src, dense.points, FeatureOptions(points=settings.feature_points))
-        poses = (found[:, :3, :3].copy(), found[:, :3, 3].copy())
-        poses = welsch_irls(poses, pair.src, pair.tgt_index, pair.nus, self.options.polish.settle)
-        return _Pool(poses, tuple((1, "global", k) for k in range(len(found))))
+        self._stage("global stage: FPFH + RANSAC and FGR candidates, one at a time")
+        matcher = FeatureMatcher(pair.src_whole, dense.points, FeatureOptions(points=settings.feature_points))
+        tried = 0
+        for tried, found in enumerate(matcher.candidates(), start=1):
+            poses = welsch_irls(
+                (found[None, :3, :3].copy(), found[None, :3, 3].copy()),
+                pair.src,
+                pair.tgt_index,
+                pair.nus,
+                self.options.polish.settle,
+            )
+            pool, costs = self._judge((pool, costs), _Pool(poses, ((1, "global", tried - 1),)), pair, dense)
+            verdict = self._verdict(pool, costs, pair, dense)
+            if not verdict.doubtful:
+                break
+        return pool, costs, verdict, Step(1, GLOBAL, 0, tried, "dense", verdict.doubtful, verdict.margin)
 
-    def _judge(self, pool: _Pool, pair: _Pair, dense: DenseTarget) -> tuple[_Pool, np.ndarray]:
-        """The ``dense_keep`` distinct candidates of lowest dense cost, after the dense polish, and
-        their dense costs (:mod:`~linereg.registration.global_stage`)."""
-        settings = self.options.global_stage
-        pool = pool.taken(np.argsort(dense_costs(pool.poses, pair.src, dense), kind="stable"))
-        none = np.zeros(len(pool.origins), dtype=bool)
-        kept = np.flatnonzero(~merged_into_earlier(pool.poses, none, none, self.options.coarse.merge_distance))
-        pool = pool.taken(kept[: settings.dense_keep])
-        pool = _Pool(dense_polish(pool.poses, pair.src, dense, settings), pool.origins)
-        return pool, dense_costs(pool.poses, pair.src, dense)
+    def _judge(
+        self, judged: tuple[_Pool, np.ndarray] | None, new: _Pool, pair: _Pair, dense: DenseTarget
+    ) -> tuple[_Pool, np.ndarray]:
+        """The dense judgement (:mod:`~linereg.registration.global_stage`) of ``new`` candidates
+        beside ``judged`` ones (already polished against the dense target, with their dense costs):
+        the ``dense_keep`` distinct new ones of lowest dense cost get the dense polish, and the
+        ``dense_keep`` distinct candidates of lowest dense cost of both are kept, cheapest first."""
+        new = self._cheapest(new, dense_costs(new.poses, pair.src, dense))[0]
+        new = _Pool(dense_polish(new.poses, pair.src, dense, self.options.global_stage), new.origins)
+        costs = dense_costs(new.poses, pair.src, dense)
+        if judged is not None:
+            new, costs = judged[0].joined(new), np.concatenate([judged[1], costs])
+        return self._cheapest(new, costs)
+
+    def _cheapest(self, pool: _Pool, costs: np.ndarray) -> tuple[_Pool, np.ndarray]:
+        """The ``dense_keep`` distinct candidates (``merge_distance`` apart) of lowest ``costs``,
+        cheapest first, and their costs."""
+        order = np.argsort(costs, kind="stable")
+        pool, costs = pool.taken(order), costs[order]
+        none = np.zeros(len(costs), dtype=bool)
+        distinct = ~merged_into_earlier(pool.poses, none, none, self.options.coarse.merge_distance)
+        kept = np.flatnonzero(distinct)[: self.options.global_stage.dense_keep]
+        return pool.taken(kept), costs[kept]
 
     def _finish(self, chosen: Poses, choice: _Choice, pair: _Pair) -> tuple[Poses, bool, float | None, bool]:
         """The fine polish and the plane-to-plane steps of the chosen pose, where they apply: the
@@ -516,23 +559,6 @@ class RobustRegistration:
             plane.steps,
         )
         return chosen, coincident, True
-
-
-def _dense_doubt(
-    select: SelectOptions, poses: Poses, costs: np.ndarray, src: np.ndarray, dense: DenseTarget
-) -> tuple[bool, float]:
-    """``(doubtful, margin)`` of the lowest dense cost. The score ``1 - cost`` is the soft share of
-    inliers; the choice is doubtful when it fails the confidence test of :func:`linereg.register`
-    or a candidate more than ``distinct_deg`` away scores more than ``1 / doubt_ratio`` of its score;
-    ``margin`` is ``1 - rival score / best score`` (1 without a rival)."""
-    scores = 1.0 - costs
-    best = int(scores.argmax())
-    confident = dense_confident(poses, best, src, dense)
-    rivals = rotation_gap_deg(poses[0], poses[0][best]) > select.distinct_deg
-    if not rivals.any():
-        return not confident, 1.0
-    rival, best_score = float(scores[rivals].max()), float(scores[best])
-    return not confident or rival * select.doubt_ratio > best_score, 1.0 - rival / max(best_score, 1e-12)
 
 
 METHODS.register("robust")(RobustRegistration)

@@ -230,19 +230,22 @@ class SearchOptions(_Checked):
 
 @dataclass(frozen=True)
 class GlobalOptions(_Checked):
-    """The stage for doubtful pairs (:mod:`~linereg.registration.global_stage`): global candidates and
-    the dense judgement of every candidate.
+    """The stage for doubtful scans (:mod:`~linereg.registration.global_stage`): the dense check of
+    the first round's answer, global candidates and the dense judgement of every candidate.
 
     Attributes:
-        candidates: ``"doubtful"``: the FPFH candidates join after a doubtful first round when the
-            target has more points than the solver's subset (a scan: FPFH needs a dense sampling,
-            and a dense judgement needs more than the subset), and the dense judgement chooses;
+        candidates: ``"doubtful"``: after a doubtful first round on a target with more points than
+            the solver's subset (a scan: FPFH needs a dense sampling, and a dense judgement needs
+            more than the subset), the dense check judges the first round's candidates against the
+            dense target; the FPFH candidates join, one at a time until the choice is not
+            doubtful, only when that check is doubtful too; ``"always"``: they join (at least the
+            first) after every doubtful first round on a scan, whatever the check says;
             ``"never"``: the rounds of the local stages alone.
         feature_points: the FPFH voxel is the spacing of this many FPS target points
             (:class:`~linereg.registration.features.FeatureOptions` ``points``).
         dense_points: FPS points of the target the candidates are polished against and judged by.
         dense_keep: candidates of lowest dense cost (distinct: ``merge_distance`` apart) that get
-            the dense polish.
+            the dense polish, and that the judgement keeps.
         dense_start, dense_steps, dense_end, dense_settle: the dense polish: Welsch scales falling
             from ``dense_start`` to ``dense_end`` dense spacings (or the polish's last scale, if
             smaller) in ``dense_steps`` steps, then up to ``dense_settle`` more. The candidates are
@@ -275,8 +278,9 @@ class GlobalOptions(_Checked):
             ),
             ("dense_settle",),
         )
-        if self.candidates not in ("doubtful", "never"):
-            raise ValueError(f"{self._name('candidates')} must be 'doubtful' or 'never', got {self.candidates!r}")
+        if self.candidates not in ("doubtful", "always", "never"):
+            message = f"must be 'doubtful', 'always' or 'never', got {self.candidates!r}"
+            raise ValueError(f"{self._name('candidates')} {message}")
 
 
 @dataclass(frozen=True)

@@ -13,6 +13,8 @@ from typing import Any
 
 import numpy as np
 
+CHECK = "dense check"
+"""The :attr:`Step.stage` of the dense check of a scan's first-round answer."""
 GLOBAL = "FPFH + RANSAC and FGR"
 """The :attr:`Step.stage` of the global candidates."""
 STAGES = {1: "IRLS on CD-W", 2: "Adam on CD-W", 3: "pose search"}
@@ -52,10 +54,12 @@ class Step:
 
     Attributes:
         round: the round (1, 2, 3) it belongs to.
-        stage: what ran (:data:`STAGES`, or :data:`GLOBAL`).
+        stage: what ran (:data:`STAGES`, :data:`CHECK` or :data:`GLOBAL`).
         starts: coarse candidates it ran (starts x coarse sides, the searched poses; 0 for the
-            global candidates).
-        added: candidates it added: those polished (not merged), or the global candidates found.
+            dense check and the global candidates).
+        added: candidates it added: those polished (not merged), the global candidates that ran
+            (the stage stops at the first after which the choice is not doubtful), 0 for the
+            dense check.
         judgement: ``"fixed"`` (the selection cost on the subset) or ``"dense"`` (the dense
             judgement), the test that followed.
         doubtful: that test's verdict on the best candidate so far.
@@ -89,6 +93,8 @@ class RobustResult:
         margin: that test's margin for the final choice (:attr:`Step.margin`, by the ranking
             that chose).
         history: every step that ran, in order.
+        checked: the first round's answer as the dense check of a scan judged it (the candidate
+            of lowest dense cost after the dense polish); ``None`` when the check did not run.
         fine: the chosen pose got the fine polish.
         coincident: the share of source points on a target point, measured before the
             plane-to-plane steps (``None`` when that test did not run).
@@ -104,6 +110,7 @@ class RobustResult:
     doubtful: bool
     margin: float
     history: tuple[Step, ...]
+    checked: Candidate | None
     fine: bool
     coincident: float | None
     plane: bool
@@ -113,7 +120,7 @@ class RobustResult:
     @property
     def info(self) -> dict[str, Any]:
         """The method's ``info``: ``doubtful``, ``margin``, ``global_candidates`` (global
-        candidates found), ``cost`` (the chosen candidate's), ``rounds`` (the last round that
+        candidates that ran), ``cost`` (the chosen candidate's), ``rounds`` (the last round that
         ran), ``starts`` (coarse candidates of all rounds), ``candidates`` (how many are left),
         ``selection``, ``fine``, ``coincident``, ``plane`` and ``warnings`` (a list)."""
         return {

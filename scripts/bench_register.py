@@ -3,7 +3,7 @@
     python scripts/bench_register.py                 # 5 partial-vs-whole airplane pairs, 1024 vs 2048 points
     python scripts/bench_register.py --pairs 10 --commands 3 --json
     python scripts/bench_register.py --compare '{"name": "robust", "options": {"rounds": 1}}'
-    python scripts/bench_register.py --scans --repeats 2  # real room scans, the command vs fpfh_ransac
+    python scripts/bench_register.py --scans --repeats 2  # real scans, the command vs fpfh_ransac, per path
 
 Pairs: :mod:`linereg.datasets.partial_vs_whole` on the ModelNet40 airplanes of the shared data (source a
 hidden-point-removal view of 1024 points, target 2048 points of the whole shape). In one run,
@@ -19,13 +19,21 @@ CPU-bound process spinning ("busy core"), it measures
   ``python -c "import linereg.registration.api"`` (the library's start-up; the script fails if
   that import loads torch), and of ``python -c "import torch"`` (what a torch command pays first).
 
-With ``--scans`` it times real room scans of the shared data instead, on the machine as it is:
-the 3DMatch redkitchen fragments ``cloud_bin_4`` -> ``cloud_bin_0`` (about 300k points each) and
-the GeoTransformer demo pair ``src.npy`` -> ``ref.npy``. Per pair, the median wall time of
-``python -m train.register source=... target=...`` as a user types it (the default method) and of
-the same command with ``method=fpfh_ransac`` (Open3D FPFH + RANSAC + point-to-plane ICP: the
-reference), that of ``python -c "import torch"``, the errors of both transforms (``result.json``)
-against the ground truth and their ``confident`` flags.
+With ``--scans`` it times real scans of the shared data instead, on the machine as it is: the
+3DMatch redkitchen fragments ``cloud_bin_4`` -> ``cloud_bin_0`` (about 300k points each), the
+GeoTransformer demo pair ``src.npy`` -> ``ref.npy``, the FRICP statue scans (about 15k points; no
+ground truth ships with them, so their errors are against the transform FRICP estimated) and
+``--fragments`` room-fragment pairs of the shared 7-Scenes sequence (seed 0, as many from each
+overlap bin of :data:`SPEED_BINS`: the ``fragments`` benchmark's three and 0.8-1 above them; each
+fragment capped at ``--fragment-points`` random points, written as PLY).
+Per pair, the median wall time of ``python -m train.register source=... target=...`` as a user
+types it (the default method) and of the same command with ``method=fpfh_ransac`` (Open3D FPFH +
+RANSAC + point-to-plane ICP: the reference), that of ``python -c "import torch"``, the errors of
+both transforms (``result.json``) against the label, their ``confident`` flags, and the path the
+default took: ``local`` (the first round's answer kept: not doubtful, or trusted by the dense
+check) or ``global`` (the dense check doubted it; how many global candidates ran). A last table
+gives each path's share of the pairs, its median and largest command time and its median ratio
+to the reference.
 
 Absolute times depend on the machine and on what else runs: compare the ratios of one run.
 """
@@ -42,6 +50,7 @@ import sys
 import tempfile
 import time
 from pathlib import Path
+from typing import NamedTuple
 
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
@@ -122,8 +131,9 @@ def measure(pairs, folder: Path, commands: int, compare: dict | None) -> dict[st
     return row
 
 
-# name: (source, target, ground truth), relative to the shared data; the ground truth is a
-# transform file or the block (target i, source j) of a 3DMatch gt.log.
+# name: (source, target, label), relative to the shared data; the label is a transform file or the
+# block (target i, source j) of a 3DMatch gt.log. The statue pair ships no ground truth: its label is
+# the transform FRICP estimated (scans/fricp_statue/SOURCE.md).
 SCAN_PAIRS = {
     "redkitchen 4->0": (
         "3dmatch/redkitchen_0_4/cloud_bin_4.ply",
@@ -135,7 +145,21 @@ SCAN_PAIRS = {
         "3dmatch/geotransformer_demo/demo/ref.npy",
         "3dmatch/geotransformer_demo/demo/gt.npy",
     ),
+    "statue (FRICP's estimate)": (
+        "scans/fricp_statue/source.ply",
+        "scans/fricp_statue/target.ply",
+        "scans/fricp_statue/m3trans.txt",
+    ),
 }
+
+
+class ScanPair(NamedTuple):
+    """A scan pair as files, and its label (``(4, 4)``, exactly rigid)."""
+
+    name: str
+    source: Path
+    target: Path
+    truth: np.ndarray
 
 
 def _register_runs(arguments: list[str], folder: Path, repeats: int) -> tuple[float, dict]:
@@ -161,42 +185,79 @@ def pose_errors(transform, truth: np.ndarray) -> tuple[float, float]:
     return rotation, float(np.linalg.norm(transform[:3, 3] - truth[:3, 3]))
 
 
-def _ground_truth(data: Path, gt: str | tuple[str, int, int]) -> np.ndarray:
-    """The exactly rigid ground truth of a :data:`SCAN_PAIRS` entry (stored ones are float32)."""
-    from linereg.datasets.formats import read_log
-    from linereg.io import read_transform
-
-    if isinstance(gt, str):
-        truth = read_transform(data / gt)
-    else:
-        log, target, source = gt
-        truth = next(entry.transform for entry in read_log(data / log) if (entry.i, entry.j) == (target, source))
-    truth = np.array(truth, dtype=np.float64)
+def _rigid(transform) -> np.ndarray:
+    """``transform`` as float64 with the nearest rotation (stored ones are float32)."""
+    truth = np.array(transform, dtype=np.float64)
     truth[:3, :3] = nearest_rotation(truth[:3, :3])
     return truth
 
 
-def measure_scans(data: Path, folder: Path, repeats: int) -> dict[str, dict]:
-    """One row per scan pair of :data:`SCAN_PAIRS` found under ``data``: command and reference times,
-    their ratio, and both methods' errors; absent pairs are skipped with a note on stderr."""
-    rows = {}
-    for name, (source, target, gt) in SCAN_PAIRS.items():
-        gt_file = gt if isinstance(gt, str) else gt[0]
-        missing = [path for path in (source, target, gt_file) if not (data / path).is_file()]
+def _label(data: Path, label: str | tuple[str, int, int]) -> np.ndarray:
+    """The label of a :data:`SCAN_PAIRS` entry."""
+    from linereg.datasets.formats import read_log
+    from linereg.io import read_transform
+
+    if isinstance(label, str):
+        return _rigid(read_transform(data / label))
+    log, target, source = label
+    return _rigid(next(entry.transform for entry in read_log(data / log) if (entry.i, entry.j) == (target, source)))
+
+
+SEQUENCE = "rgbd/7scenes_first_half/data"
+"""The posed RGB-D sequence of the room fragments, relative to the shared data."""
+SPEED_BINS = ((0.2, 0.3), (0.3, 0.5), (0.5, 0.8), (0.8, 1.0))
+"""Overlap bins of the room-fragment pairs timed with ``--scans``: the ``fragments`` benchmark's
+three and the pairs above them, whose first-round answers are mostly right."""
+
+
+def scan_pairs(data: Path, folder: Path, fragments: int, points: int) -> list[ScanPair]:
+    """The pairs of :data:`SCAN_PAIRS` found under ``data`` (absent ones skipped with a note on
+    stderr), then ``fragments`` room-fragment pairs of the shared sequence (seed 0, as many from
+    each bin of :data:`SPEED_BINS`), each cloud capped at ``points`` random points and written as
+    PLY into ``folder``."""
+    from linereg.datasets.benchmark_pairs import select_pairs
+
+    found = []
+    for name, (source, target, label) in SCAN_PAIRS.items():
+        label_file = label if isinstance(label, str) else label[0]
+        missing = [path for path in (source, target, label_file) if not (data / path).is_file()]
         if missing:
             print(f"skipping {name}: {', '.join(str(data / path) for path in missing)} not found", file=sys.stderr)
             continue
-        pair = folder / name.replace(" ", "_").replace(">", "")
-        pair.mkdir()
-        truth = _ground_truth(data, gt)
-        arguments = [f"source={data / source}", f"target={data / target}"]
-        command, report = _register_runs(arguments, pair / "default", repeats)
-        reference, ref_report = _register_runs([*arguments, "method=fpfh_ransac"], pair / "fpfh_ransac", repeats)
-        floor = _wall([sys.executable, "-c", "import torch"], pair, repeats)
-        (err_r, err_t), (ref_r, ref_t) = (pose_errors(r["transform"], truth) for r in (report, ref_report))
-        rows[name] = {
+        found.append(ScanPair(name, data / source, data / target, _label(data, label)))
+    if fragments > 0 and not (data / SEQUENCE).is_dir():
+        print(f"skipping the room fragments: {data / SEQUENCE} not found", file=sys.stderr)
+    elif fragments > 0:
+        bins = [list(b) for b in SPEED_BINS]
+        sequence = {"name": "fragments", "root": str(data / SEQUENCE), "dense_points": points, "bins": bins}
+        for index, pair in enumerate(select_pairs(sequence, pairs=fragments, seed=0)):
+            source, target = folder / f"fragments{index}_src.ply", folder / f"fragments{index}_tgt.ply"
+            write_point_cloud(source, pair.src_xyz)
+            write_point_cloud(target, pair.tgt_xyz)
+            overlap = pair.meta["overlap"]
+            found.append(ScanPair(f"fragments {index} ({overlap:.2f})", source, target, _rigid(pair.gt_transform)))
+    return found
+
+
+def measure_scans(pairs: list[ScanPair], folder: Path, repeats: int) -> dict[str, dict]:
+    """One row per pair: the command's and the reference's times, their ratio, both methods'
+    errors and ``confident`` flags, and the command's path (``local``: the first round's answer
+    kept; ``global``: global candidates ran, ``global_candidates`` of them)."""
+    rows = {}
+    for number, pair in enumerate(pairs):
+        place = folder / f"pair{number}"
+        place.mkdir()
+        arguments = [f"source={pair.source}", f"target={pair.target}"]
+        command, report = _register_runs(arguments, place / "default", repeats)
+        reference, ref_report = _register_runs([*arguments, "method=fpfh_ransac"], place / "fpfh_ransac", repeats)
+        floor = _wall([sys.executable, "-c", "import torch"], place, repeats)
+        (err_r, err_t), (ref_r, ref_t) = (pose_errors(r["transform"], pair.truth) for r in (report, ref_report))
+        tried = report["info"]["global_candidates"]
+        rows[pair.name] = {
             "source_points": report["source_points"],
             "target_points": report["target_points"],
+            "path": "global" if tried else "local",
+            "global_candidates": tried,
             "command_s": command,
             "fpfh_ransac_command_s": reference,
             "command_vs_fpfh_ransac": command / reference,
@@ -209,26 +270,52 @@ def measure_scans(data: Path, folder: Path, repeats: int) -> dict[str, dict]:
             "fpfh_ransac_translation_error": ref_t,
             "fpfh_ransac_confident": ref_report["confident"],
         }
+        print(f"{pair.name}: {rows[pair.name]}", file=sys.stderr, flush=True)
     return rows
 
 
+def path_summary(rows: dict[str, dict]) -> dict[str, dict]:
+    """Per path (``local``, ``global``): pairs, their share, the command's median and largest wall
+    time and the median ratio to the reference command."""
+    summary = {}
+    for path in ("local", "global"):
+        chosen = [row for row in rows.values() if row["path"] == path]
+        if chosen:
+            summary[path] = {
+                "pairs": len(chosen),
+                "share": len(chosen) / len(rows),
+                "command_s_median": statistics.median(row["command_s"] for row in chosen),
+                "command_s_max": max(row["command_s"] for row in chosen),
+                "command_vs_fpfh_ransac_median": statistics.median(row["command_vs_fpfh_ransac"] for row in chosen),
+            }
+    return summary
+
+
 def print_scans(rows: dict[str, dict], repeats: int) -> None:
-    """The ``--scans`` rows as a markdown table."""
+    """The ``--scans`` rows as markdown tables: per pair, then per path."""
     print(f"real scans, medians of {repeats} run(s) of each command, {os.cpu_count()} CPUs\n")
     print(
-        "| pair | points (source/target) | command wall (s) | fpfh_ransac command wall (s) | command / fpfh_ransac "
-        "| import torch (s) | command / import torch | Err_R (deg) | translation error (m) | confident "
-        "| fpfh_ransac Err_R (deg) | fpfh_ransac translation error (m) | fpfh_ransac confident |"
+        "| pair | points (source/target) | path | command wall (s) | fpfh_ransac command wall (s) "
+        "| command / fpfh_ransac | command / import torch | Err_R (deg), translation, confident "
+        "| fpfh_ransac Err_R (deg), translation, confident |"
     )
-    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|---|---|---|")
     for name, row in rows.items():
+        path = row["path"] if row["path"] == "local" else f"global ({row['global_candidates']})"
         print(
-            f"| {name} | {row['source_points']}/{row['target_points']} | {row['command_s']:.2f} "
+            f"| {name} | {row['source_points']}/{row['target_points']} | {path} | {row['command_s']:.2f} "
             f"| {row['fpfh_ransac_command_s']:.2f} | {row['command_vs_fpfh_ransac']:.2f}x "
-            f"| {row['import_torch_s']:.2f} "
-            f"| {row['command_vs_import_torch']:.2f}x | {row['err_r_deg']:.3f} | {row['translation_error']:.4f} "
-            f"| {row['confident']} | {row['fpfh_ransac_err_r_deg']:.3f} | {row['fpfh_ransac_translation_error']:.4f} "
-            f"| {row['fpfh_ransac_confident']} |"
+            f"| {row['command_vs_import_torch']:.2f}x "
+            f"| {row['err_r_deg']:.2f}, {row['translation_error']:.4f}, {row['confident']} "
+            f"| {row['fpfh_ransac_err_r_deg']:.2f}, {row['fpfh_ransac_translation_error']:.4f}, "
+            f"{row['fpfh_ransac_confident']} |"
+        )
+    print("\n| path | pairs | share | command wall median (s) | max (s) | command / fpfh_ransac (median) |")
+    print("|---|---|---|---|---|---|")
+    for path, row in path_summary(rows).items():
+        print(
+            f"| {path} | {row['pairs']} | {row['share']:.0%} | {row['command_s_median']:.2f} "
+            f"| {row['command_s_max']:.2f} | {row['command_vs_fpfh_ransac_median']:.2f}x |"
         )
 
 
@@ -240,6 +327,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--compare", type=json.loads, help='method config (JSON) to time beside, e.g. {"name": "fgr"}')
     parser.add_argument("--scans", action="store_true", help="time real room scans: the command vs fpfh_ransac")
     parser.add_argument("--repeats", type=int, default=2, help="runs of each command with --scans")
+    parser.add_argument("--fragments", type=int, default=16, help="room-fragment pairs with --scans (4 bins)")
+    parser.add_argument("--fragment-points", type=int, default=100_000, help="points of each fragment with --scans")
     args = parser.parse_args(argv)
     if args.compare is not None:
         METHODS.build(args.compare)  # a bad config fails here, before any timing
@@ -248,11 +337,12 @@ def main(argv: list[str] | None = None) -> int:
         parser.error("the shared data folder was not found (set $LINEREG_SHARED_DATA)")
     if args.scans:
         with tempfile.TemporaryDirectory() as folder:
-            rows = measure_scans(data, Path(folder), args.repeats)
+            pairs = scan_pairs(data, Path(folder), args.fragments, args.fragment_points)
+            rows = measure_scans(pairs, Path(folder), args.repeats)
         if not rows:
             parser.error(f"no scan pair was found under {data}")
         if args.json:
-            print(json.dumps(rows))
+            print(json.dumps({"pairs": rows, "paths": path_summary(rows)}))
         else:
             print_scans(rows, args.repeats)
         return 0

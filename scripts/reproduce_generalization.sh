@@ -10,8 +10,6 @@
 #                one run per held-out body (configs/dataset/human_unseen_body.yaml);
 #   mixed_pairs  Airplane with both pair types in training, view-vs-view and view-vs-whole at the
 #                budget of one (configs/dataset/airplane_mixed_pairs.yaml);
-#   human_stretch  Human with its training shapes stretched per axis by up to 20 %
-#                (protocol.anisotropic_scale of the train split): each fold, and all three bodies;
 #   human_choice   RPM-Ours on Human at the line loss's other settings (nu0 0.5 / 2, 5000 / 20 000
 #                lines; the recipe's nu0 = 2 with 20 000 lines is the protocol's own cell);
 #   seeds        the Human and Real cells themselves at PROTOCOL_SEEDS (default 1 2: seed 0 is the
@@ -27,9 +25,8 @@ PY=${PYTHON:-.venv/bin/python}
 OUT=${OUT:-outputs/generalization_runs}
 SEEDS=${SEEDS:-0 1 2}
 CELLS=${CELLS:-rpm_gt rpm_cd rpm_ours}
-STEPS=${STEPS:-unseen_body mixed_pairs human_stretch human_choice seeds}
+STEPS=${STEPS:-unseen_body mixed_pairs human_choice seeds}
 PROTOCOL_SEEDS=${PROTOCOL_SEEDS:-1 2}
-STRETCH="+dataset.splits.train.protocol.anisotropic_scale=0.2"
 BODIES="human_man human_neutral human_woman"
 DRY=${DRY:-0}
 export OMP_NUM_THREADS=${OMP_NUM_THREADS:-1}
@@ -56,18 +53,13 @@ runs() {
           done ;;
         mixed_pairs)
           echo "$OUT/mixed_pairs/${cell}_s$seed experiment=$cell protocol=airplane dataset=airplane_mixed_pairs seed=$seed" ;;
-        human_stretch)
-          for body in $BODIES; do
-            echo "$OUT/human_stretch/$body/${cell}_s$seed experiment=$cell protocol=human dataset=human_unseen_body dataset.held_out=$body $STRETCH seed=$seed"
-          done
-          echo "$OUT/human_stretch/all/${cell}_s$seed experiment=$cell protocol=human $STRETCH seed=$seed" ;;
         human_choice)
           [[ $cell == rpm_ours ]] || continue
           for setting in "0.5 5000" "2.0 5000" "0.5 20000"; do
             read -r nu lines <<< "$setting"
             echo "$OUT/human_choice/rpm_ours_nu${nu}_lines${lines}_s$seed experiment=rpm_ours protocol=human loss.nu0=$nu loss.num_lines=$lines seed=$seed"
           done ;;
-        *) echo "reproduce_generalization.sh: error: unknown step '$step' (unseen_body, mixed_pairs, human_stretch, human_choice, seeds)" >&2; return 2 ;;
+        *) echo "reproduce_generalization.sh: error: unknown step '$step' (unseen_body, mixed_pairs, human_choice, seeds)" >&2; return 2 ;;
       esac
     done
   done

@@ -12,7 +12,11 @@ split of :data:`SPLITS` (a dataset config of ``configs/dataset/``). With ``--run
   body its training never saw;
 * ``mixed_pairs/<cell>_s<seed>``: each run trained on both Airplane pair types, on the Airplane
   splits, and on the validation pairs of both pair types (fresh poses of training shapes, the
-  pairs the recipe's choice is made on) beside the shipped view-vs-view networks.
+  pairs the recipe's choice is made on) beside the shipped view-vs-view networks;
+* ``human_choice/<settings>_s<seed>``: RPM-Ours on Human at other line-loss settings, on the
+  validation pairs (fresh poses of every training pair; the choice) and the test pairs;
+* ``recipe/<protocol>/<cell>_s<seed>``: the protocol's own cells at other seeds, on its splits
+  (the shipped network is seed 0).
 
 Every table gives the identity's error on the same pairs and, with ``--register``, that of
 ``linereg.register`` (the default solver, no network). Each score is cached in
@@ -63,7 +67,6 @@ MIXED_SPLITS = [(IN_PROTOCOL, "airplane_views"), *SPLITS["airplane"][1:]]
 RUN_NAME = re.compile(r".+_s\d+$")  # <cell or settings>_s<seed>
 # The Human runs on the validation pairs of their choice: fresh poses of every training pair.
 HUMAN_VALIDATION_PAIRS = 120
-HUMAN_SPLITS = SPLITS["human"]
 
 
 @dataclass(frozen=True)
@@ -185,23 +188,9 @@ def choice_jobs(runs: Path) -> list[Job]:
     rows = {"rpm_ours_human": "rpm_ours_human"}
     rows.update({name: str(folder) for name, folder in run_folders(runs, "human_choice").items()})
     return [
-        Job(f"{row}/val", checkpoint, None, "val", "human_val", HUMAN_VALIDATION_PAIRS)
+        Job(f"{row}/val", checkpoint, "human_bodies", "val", "human_val", HUMAN_VALIDATION_PAIRS)
         for row, checkpoint in rows.items()
     ] + [Job(f"{row}/test", checkpoint, None, "test", "human_test") for row, checkpoint in rows.items()]
-
-
-def stretch_jobs(runs: Path) -> list[Job]:
-    """The ``human_stretch`` runs: each fold on its held-out body, the three-body runs on the Human splits."""
-    jobs = []
-    for name, folder in run_folders(runs, "human_stretch").items():
-        if folder.parent.name == "all":
-            jobs += [
-                Job(f"{name}/{dataset or 'test'}", str(folder), dataset, "test", f"human_{dataset or 'test'}")
-                for _, dataset in HUMAN_SPLITS
-            ]
-        else:
-            jobs.append(Job(f"{name}/test", str(folder), None, "test", f"human_unseen_{folder.parent.name}"))
-    return jobs
 
 
 def run_all(jobs: Iterable[Job], out: Path, register: bool) -> dict[str, dict[str, float]]:
@@ -334,29 +323,6 @@ def choice_table(scores: Mapping[str, Mapping[str, float]]) -> str:
     return "\n".join([*lines, ""])
 
 
-def stretch_table(scores: Mapping[str, Mapping[str, float]]) -> str:
-    """Human with and without anisotropic stretching in training: the unseen bodies (the choice's
-    validation: other folds) and the Human splits, seed 0."""
-    if not any(key.startswith("human_stretch/") for key in scores):
-        return ""
-    columns = ["unseen body (mean of 3 folds)", *(column for column, _ in HUMAN_SPLITS)]
-    lines = ["### Human, stretched bodies in training", "", "| training | cell | " + " | ".join(columns) + " |"]
-    lines.append("|---|---|" + "---:|" * len(columns))
-    for cell in ("rpm_cd", "rpm_ours"):
-        for label, folds, whole in (
-            ("as is", "unseen_body/{body}/" + cell, f"{cell}_human"),
-            ("stretched", "human_stretch/{body}/" + cell, f"human_stretch/all/{cell}"),
-        ):
-            unseen = [scores.get(f"{folds.format(body=body)}_s0/test", {}).get("model") for body in BODIES]
-            mean = float(np.mean(unseen)) if None not in unseen else None
-            suffix = "" if label == "as is" else "_s0"
-            splits = [
-                scores.get(f"{whole}{suffix}/{dataset or 'test'}", {}).get("model") for _, dataset in HUMAN_SPLITS
-            ]
-            lines.append(f"| {label} | {cell} | {_cells([mean, *splits])} |")
-    return "\n".join([*lines, ""])
-
-
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--out", type=Path, required=True, help="folder of the cached scores and table.md")
@@ -368,9 +334,9 @@ def main(argv: list[str] | None = None) -> int:
         mixed = {name: str(folder) for name, folder in run_folders(args.runs, "mixed_pairs").items()}
         shipped = {f"rpm_{loss}_airplane": f"rpm_{loss}_airplane" for loss in LOSSES}
         jobs += run_jobs(args.runs) + validation_jobs({**shipped, **mixed} if mixed else {})
-        jobs += seed_jobs(args.runs) + choice_jobs(args.runs) + stretch_jobs(args.runs)
+        jobs += seed_jobs(args.runs) + choice_jobs(args.runs)
     scores = run_all(jobs, args.out, args.register)
-    tables = (shipped_table, unseen_body_table, mixed_table, choice_table, stretch_table)
+    tables = (shipped_table, unseen_body_table, mixed_table, choice_table)
     text = "\n".join(part for part in (table(scores) for table in tables) if part)
     (args.out / "table.md").write_text(text)
     print(text)

@@ -34,7 +34,6 @@ def test_every_fold_and_seed_of_every_step_is_a_cell_command_with_a_dataset():
     assert {step: steps.count(step) for step in set(steps)} == {
         "unseen_body": 3 * 2 * 2,  # bodies x cells x seeds
         "mixed_pairs": 2 * 2,
-        "human_stretch": 4 * 2 * 2,  # three folds and all bodies
         "human_choice": 3 * 2,  # three settings of RPM-Ours
         "recipe": 2 * 2 * 2,  # Human and Real x cells x the two seeds besides the shipped one
     }
@@ -46,8 +45,6 @@ def test_every_fold_and_seed_of_every_step_is_a_cell_command_with_a_dataset():
         assert args.startswith(f"experiment={cell} ") and args.endswith(f" seed={seed}")
         if body in BODIES:
             assert f"protocol=human dataset=human_unseen_body dataset.held_out={body} " in args
-        stretched = "+dataset.splits.train.protocol.anisotropic_scale=0.2" in args
-        assert stretched == (step == "human_stretch")
         if step == "mixed_pairs":
             assert "protocol=airplane dataset=airplane_mixed_pairs " in args
         if step == "human_choice":
@@ -62,5 +59,5 @@ def test_every_fold_and_seed_of_every_step_is_a_cell_command_with_a_dataset():
 def test_an_unknown_step_is_one_line_and_exit_code_2():
     result = _dry(STEPS="unseen_body leave_two_out")
     assert result.returncode == 2 and result.stdout == ""
-    steps = "unseen_body, mixed_pairs, human_stretch, human_choice, seeds"
+    steps = "unseen_body, mixed_pairs, human_choice, seeds"
     assert result.stderr.strip() == f"reproduce_generalization.sh: error: unknown step 'leave_two_out' ({steps})"

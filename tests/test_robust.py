@@ -32,7 +32,7 @@ from linereg.registration.poses import (
 )
 from linereg.registration.robust import degeneracy, doubt
 from linereg.registration.robust_options import PolishOptions, RobustOptions
-from linereg.registration.robust_result import GLOBAL, STAGES
+from linereg.registration.robust_result import CHECK, GLOBAL, STAGES
 from linereg.registration.search import pose_search
 from linereg.registration.solvers import start_poses
 from linereg.registration.welsch import fine_scales, fixed_scale_cost, polish_scales, welsch_irls
@@ -159,12 +159,17 @@ def test_polish_scales_fall_then_hold():
     assert len(polish_scales(PolishOptions(steps=0), 0.02)) == 0
 
 
-@pytest.fixture(scope="module")
-def partial_pair():
-    """A partial source (700 points with x > -0.3) against the whole, moved surface (3000 points)."""
+def partial_clouds():
+    """A partial source (700 points with x > -0.3) against the whole, moved surface (3000 points), and the truth."""
     whole = surface(3000, 7)
     truth = pose([40, -30, 25], [0.2, -0.1, 0.15])
     return whole[whole[:, 0] > -0.3][:700], apply(truth, whole), truth
+
+
+@pytest.fixture(scope="module")
+def partial_pair():
+    """:func:`partial_clouds`."""
+    return partial_clouds()
 
 
 def test_robust_registration_recovers_a_partial_view_and_reports_its_quality(partial_pair):
@@ -205,20 +210,61 @@ def test_a_doubtful_pose_gets_the_later_rounds(partial_pair):
     assert capped(src, tgt).info["rounds"] == 1
 
 
-def test_a_doubtful_first_round_brings_the_global_candidates_and_the_dense_judgement(partial_pair):
-    """A first round made doubtful (``max_cost``): the FPFH candidates join and the dense costs choose."""
+def test_the_dense_check_keeps_a_right_first_answer_on_a_scan(partial_pair):
+    """A first round made doubtful (``max_cost``) on a target larger than the subset: the dense
+    check judges its answer against the dense target, trusts it, and no global candidate runs."""
     src, tgt, truth = partial_pair
-    result = METHODS.build({"name": "robust", "num_points": 512, "options": {"max_cost": 1e-6}}).solve(src, tgt)
+    result = METHODS.build({"name": "robust", "num_points": 1024, "options": {"max_cost": 1e-6}}).solve(src, tgt)
     info = result.info
-    assert info["selection"] == "dense" and info["global_candidates"] >= 2 and info["coincident"] > 0.5
-    assert error_deg(result.transform, truth) < 1.0
-    first, found, *later = result.history
+    first, check = result.history
     assert (first.stage, first.judgement, first.doubtful) == (STAGES[1], "fixed", True)
-    assert (found.round, found.stage, found.starts, found.added) == (1, GLOBAL, 0, info["global_candidates"])
-    assert all(step.judgement == "dense" for step in [found, *later])
+    assert (check.round, check.stage, check.starts, check.added) == (1, CHECK, 0, 0)
+    assert (check.judgement, check.doubtful) == ("dense", False)
+    assert info["global_candidates"] == 0 and info["selection"] == "dense" and info["coincident"] > 0.5
+    assert error_deg(result.checked.transform, truth) < 1.0 and error_deg(result.transform, truth) < 1.0
+    assert (result.checked.round, result.checked.origin) == (1, "start")
     assert len(result.candidates) <= RobustOptions().global_stage.dense_keep and not result.fine
     costs = [candidate.cost for candidate in result.candidates]
     assert result.chosen == int(np.argmin(costs)) and costs == [c.objective for c in result.candidates]
+
+
+def test_a_doubtful_dense_check_brings_the_global_candidates_then_the_later_rounds(partial_pair):
+    """On 512 points no first-round candidate comes within 8 deg: the dense check doubts the
+    answer, the global candidates join, and the later rounds run under the dense judgement."""
+    src, tgt, truth = partial_pair
+    result = METHODS.build({"name": "robust", "num_points": 512}).solve(src, tgt)
+    first, check, found, *later = result.history
+    assert (first.doubtful, check.stage, check.doubtful) == (True, CHECK, True)
+    assert error_deg(result.checked.transform, truth) > 5.0
+    assert (found.round, found.stage, found.starts, found.added) == (1, GLOBAL, 0, result.info["global_candidates"])
+    assert 1 <= found.added <= 3 and later and all(step.judgement == "dense" for step in [check, found, *later])
+    assert error_deg(result.transform, truth) < 1.0 and result.info["selection"] == "dense"
+
+
+def test_the_global_stage_stops_at_the_first_candidate_that_settles_the_choice(partial_pair):
+    """``global_candidates: always`` runs the stage after a trusted answer too: the first candidate
+    leaves the choice undoubted, so the other two are never computed."""
+    src, tgt, truth = partial_pair
+    options = {"max_cost": 1e-6, "global_candidates": "always"}
+    result = METHODS.build({"name": "robust", "num_points": 1024, "options": options}).solve(src, tgt)
+    stages = [(step.stage, step.added, step.doubtful) for step in result.history]
+    assert stages == [(STAGES[1], result.history[0].added, True), (CHECK, 0, False), (GLOBAL, 1, False)]
+    assert result.info["global_candidates"] == 1 and error_deg(result.transform, truth) < 1.0
+
+
+def test_the_feature_matcher_computes_the_features_once(monkeypatch):
+    """Every candidate of :class:`FeatureMatcher` reuses the two clouds' FPFH features."""
+    from linereg.registration import features
+
+    computed = []
+    original = features.fpfh
+    monkeypatch.setattr(features, "fpfh", lambda *arguments: computed.append(1) or original(*arguments))
+    cloud = surface(3000, 3)
+    matcher = features.FeatureMatcher(cloud, apply(pose([30, 10, -20], [0.1, 0.0, 0.2]), cloud))
+    assert len(computed) == 2
+    found = list(matcher.candidates())
+    assert len(found) == matcher.count() == 3 and len(computed) == 2
+    assert all(candidate.shape == (4, 4) for candidate in found)
 
 
 def test_init_is_applied_to_the_source_first(partial_pair):
@@ -256,6 +302,27 @@ def test_the_default_path_does_not_import_torch():
         "assert result.fitness > 0.9, result\n"
         "loaded = [m for m in ('torch', 'open3d', 'numba', 'matplotlib') if m in sys.modules]\n"
         "assert not loaded, loaded\n"
+    )
+    subprocess.run([sys.executable, "-c", code], cwd=REPO_ROOT, check=True, timeout=300)
+
+
+def test_a_scan_whose_answer_passes_the_dense_check_imports_neither_open3d_nor_torch(tmp_path):
+    """The dense check runs on numpy and scipy; the global stage loads Open3D, and not torch."""
+    np.savez(tmp_path / "pair.npz", *partial_clouds()[:2])
+    code = (
+        "import sys, numpy as np\n"
+        "from linereg.registration import METHODS\n"
+        f"pair = np.load({str(tmp_path / 'pair.npz')!r})\n"
+        "src, tgt = pair['arr_0'], pair['arr_1']\n"
+        "def solve(**options):\n"
+        "    options = {'max_cost': 1e-6, **options}\n"
+        "    return METHODS.build({'name': 'robust', 'num_points': 1024, 'options': options}).solve(src, tgt)\n"
+        "result = solve()\n"
+        "assert [step.stage for step in result.history] == ['IRLS on CD-W', 'dense check'], result.history\n"
+        "assert not {'torch', 'open3d'} & set(sys.modules), 'the dense check imported torch or Open3D'\n"
+        "result = solve(global_candidates='always')\n"
+        "assert result.info['global_candidates'] == 1 and 'open3d' in sys.modules\n"
+        "assert 'torch' not in sys.modules, 'the global stage imported torch'\n"
     )
     subprocess.run([sys.executable, "-c", code], cwd=REPO_ROOT, check=True, timeout=300)
 

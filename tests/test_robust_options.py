@@ -49,6 +49,9 @@ def test_options_are_checked():
         options(coincident_share=2.0)
     with pytest.raises(ValueError, match="doubtful_select must be 'polish' or 'fixed'"):
         options(doubtful_select="line")
+    with pytest.raises(ValueError, match="global_candidates must be 'doubtful', 'always' or 'never'"):
+        options(global_candidates="sometimes")
+    assert options(global_candidates="always").global_stage.candidates == "always"
     with pytest.raises(ValueError, match="coarse_sides must be"):
         options(coarse_sides=("both", "target"))
     with pytest.raises(ValueError, match="search_keep must be > 0"):

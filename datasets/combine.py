@@ -3,6 +3,14 @@
 ``{name: concat, datasets: [{name: threedmatch, ...}, {name: rgbd_sequence, ...}],
 split: train, train_fraction: 0.8}`` concatenates the parts and keeps a seeded random
 ``train_fraction`` share of the pairs (``split: test`` keeps the rest, ``all`` everything).
+
+``common`` holds keys merged (deeply) into every part, so that a dataset config's splits and
+variants reach parts that split themselves::
+
+    {name: concat, datasets: [...], splits: {train: {common: {split: train}}},
+     variants: {easy: {common: {protocol: {max_angle_deg: 15}}}}}
+
+Each part then takes its own train split (its shapes, its views) and the concat keeps all of them.
 """
 
 from __future__ import annotations
@@ -13,6 +21,7 @@ from itertools import accumulate
 from typing import Any
 
 import numpy as np
+from omegaconf import OmegaConf
 
 from linereg.datasets.base import DATASETS, PairDataset
 from linereg.structures import PairSample
@@ -87,11 +96,16 @@ def build_concat(
     split: str = "all",
     train_fraction: float = 0.8,
     split_seed: int = 0,
+    common: Mapping[str, Any] | None = None,
 ) -> ConcatPairs:
-    """Concatenate dataset configs (each ``{name: ..., **kwargs}``) and take a split."""
+    """Concatenate dataset configs (each ``{name: ..., **kwargs}``, with ``common`` merged into
+    each) and take a split."""
     from linereg.datasets import build_dataset
 
-    parts = [build_dataset(config) for config in datasets]
+    if common is not None and not isinstance(common, Mapping):
+        raise TypeError(f"concat's common must be a mapping of keys for every part, got {type(common).__name__}")
+    merged = [OmegaConf.to_container(OmegaConf.merge(config, common or {})) for config in datasets]
+    parts = [build_dataset(config) for config in merged]
     uncached = [p for p in parts if not isinstance(p, PairDataset)]
     if uncached:
         raise ValueError("concat parts must be generators, not caches; cache the concat instead")

@@ -4,7 +4,8 @@ A *record* is one method's result on one labelled pair, as ``linereg-benchmark``
 ``pair``, ``method``, ``seconds``, the paper's errors (:data:`linereg.metrics.ERROR_KEYS`: ``Err_R``
 in degrees, ``Err_t`` and ``Err_pw`` in l1 and l2), ``diameter``, ``bbox_diagonal``,
 ``confident``, ``fitness``, ``gt_transform`` and the pair's ``meta``. From records this module
-builds ``results.json`` (:func:`results_content`) and ``table.md`` (:func:`results_table`): the
+builds ``results.json`` (:func:`results_content`), ``table.md`` (:func:`results_table`) and
+``alpha_recall.png`` (:func:`plot_alpha_recall`, with matplotlib: ``pip install linereg[plot]``): the
 paper's Table 1 (means, then medians, time and success rates) and
 
 * registration recall (3DMatch's definition): the share of pairs with RRE (the geodesic angle of
@@ -483,3 +484,40 @@ def results_table(
     if len(errors) > 1:
         table += "\n" + "\n".join(recall_lines(errors)) + "\n"
     return table
+
+
+def plot_alpha_recall(path: str | Path, content: Mapping[str, Any]) -> Path:
+    """Draw ``alpha_recall.png``: the alpha-recall curves of :func:`results_content` beside each
+    method's mean l2 pointwise error.
+
+    Raises:
+        ModuleNotFoundError: matplotlib is not installed (the ``plot`` extra).
+    """
+    try:
+        from matplotlib.backends.backend_agg import FigureCanvasAgg
+        from matplotlib.figure import Figure
+    except ModuleNotFoundError as error:
+        raise ModuleNotFoundError("the alpha-recall plot needs matplotlib: pip install 'linereg[plot]'") from error
+
+    curves = content["alpha_recall"]
+    alphas = np.asarray(curves["alphas"], dtype=np.float64)
+    figure = Figure(figsize=(11, 4))
+    FigureCanvasAgg(figure)
+    left, right = figure.subplots(1, 2, gridspec_kw={"width_ratios": [3, 2]})
+    for method, recall in curves["recall"].items():
+        left.plot(alphas, recall, label=method)
+    relative = curves["relative"]
+    left.set_xlabel("alpha / object diameter" if relative else "alpha (l2 pointwise error, pair units)")
+    left.set_ylabel("alpha-recall")
+    if np.all(alphas > 0):
+        left.set_xscale("log")
+    left.set_ylim(0, 1.02)
+    left.grid(alpha=0.3)
+    left.legend()
+    names = list(curves["recall"])
+    right.bar(names, [content["summary"][name]["err_pw_l2_mean"] for name in names], color="tab:gray")
+    right.set_ylabel("mean l2 pointwise error")
+    right.tick_params(axis="x", labelrotation=30)
+    figure.tight_layout()
+    figure.savefig(path, dpi=120)
+    return Path(path)

@@ -16,7 +16,10 @@ split of :data:`SPLITS` (a dataset config of ``configs/dataset/``). With ``--run
 * ``human_choice/<settings>_s<seed>``: RPM-Ours on Human at other line-loss settings, on the
   validation pairs (fresh poses of every training pair; the choice) and the test pairs;
 * ``recipe/<protocol>/<cell>_s<seed>``: the protocol's own cells at other seeds, on its splits
-  (the shipped network is seed 0).
+  (the shipped network is seed 0);
+* ``objects/<cell>_s<seed>``: networks trained on every object (``dataset=objects``), with the
+  shipped general model ``rpm_ours_objects`` (seed 0) and every shipped protocol network, on every
+  split of every protocol (:data:`OBJECT_SPLITS`).
 
 Every table gives the identity's error on the same pairs and, with ``--register``, that of
 ``linereg.register`` (the default solver, no network). Each score is cached in
@@ -64,6 +67,18 @@ VALIDATION_PAIRS = 144
 VALIDATION = [("val: view vs view", "airplane_views"), ("val: view vs whole", "airplane_view_vs_whole")]
 # The mixed-pairs runs on the Airplane splits; airplane_views holds the protocol's own pairs.
 MIXED_SPLITS = [(IN_PROTOCOL, "airplane_views"), *SPLITS["airplane"][1:]]
+# The general model's table: every protocol's splits; other classes only as the shapes it held out.
+OBJECT_SPLITS: list[tuple[str, str, str]] = [  # (protocol, column, dataset config)
+    ("airplane", "Airplane in-protocol", "airplane_views"),
+    ("airplane", "Airplane view vs whole", "airplane_view_vs_whole"),
+    ("airplane", "6 held-out shapes of 7 other classes", "airplane_other_categories_held_out"),
+    ("human", "Human in-protocol", "human_bodies"),
+    ("human", "Human view vs view", "human_view_vs_view"),
+    ("human", "armadillo", "human_armadillo"),
+    ("real", "Real in-protocol", "sevenscenes_frames"),
+    ("real", "Kinect frames", "kinect_frames"),
+]
+GENERAL = "rpm_ours_objects"
 RUN_NAME = re.compile(r".+_s\d+$")  # <cell or settings>_s<seed>
 # The Human runs on the validation pairs of their choice: fresh poses of every training pair.
 HUMAN_VALIDATION_PAIRS = 120
@@ -191,6 +206,56 @@ def choice_jobs(runs: Path) -> list[Job]:
         Job(f"{row}/val", checkpoint, "human_bodies", "val", "human_val", HUMAN_VALIDATION_PAIRS)
         for row, checkpoint in rows.items()
     ] + [Job(f"{row}/test", checkpoint, None, "test", "human_test") for row, checkpoint in rows.items()]
+
+
+def _pairs_key(protocol: str, dataset: str) -> str:
+    """The ``register`` cache of a dataset's test pairs (a protocol's own data: ``<protocol>_test``)."""
+    own = {"airplane_views", "human_bodies", "sevenscenes_frames"}
+    return f"{protocol}_test" if dataset in own else f"{protocol}_{dataset}"
+
+
+def object_jobs(runs: Path | None) -> list[Job]:
+    """The general model, the ``objects`` runs and every shipped protocol network on every split."""
+    from linereg import pretrained
+
+    rows = {f"rpm_{loss}_{protocol}": f"rpm_{loss}_{protocol}" for protocol in SPLITS for loss in LOSSES}
+    if pretrained.is_name(GENERAL):
+        rows[GENERAL] = GENERAL
+    if runs is not None:
+        rows.update({name: str(folder) for name, folder in run_folders(runs, "objects").items()})
+    return [
+        Job(f"general/{row}/{dataset}", checkpoint, dataset, "test", _pairs_key(protocol, dataset))
+        for row, checkpoint in rows.items()
+        for protocol, _, dataset in OBJECT_SPLITS
+    ]
+
+
+def objects_table(scores: Mapping[str, Mapping[str, float]]) -> str:
+    """Every network on every protocol's splits: the general model's rows (mean over seeds, per seed)
+    above the protocol networks (seed 0); ``*`` marks a protocol network on its own protocol."""
+    keys = [key for key in scores if key.startswith("general/")]
+    if not keys:
+        return ""
+    header = "| network | " + " | ".join(column for _, column, _ in OBJECT_SPLITS) + " |"
+    lines = ["### Every object in one network", "", header, "|---|" + "---:|" * len(OBJECT_SPLITS)]
+    for cell in sorted({key.split("/")[2].rsplit("_s", 1)[0] for key in keys if key.startswith("general/objects/")}):
+        per_seed = []
+        for _, _, dataset in OBJECT_SPLITS:
+            seeds = _seeds_of(scores, rf"general/objects/{cell}_s{{seed}}/{dataset}")
+            shipped = scores.get(f"general/{GENERAL}/{dataset}", {}).get("model") if cell == "rpm_ours" else None
+            per_seed.append(dict(sorted(({0: shipped} if shipped is not None else {}) | seeds).items()))
+        lines.append(f"| `{cell}_objects` | " + " | ".join(_per_seed(values) for values in per_seed) + " |")
+    for protocol in SPLITS:
+        for loss in LOSSES:
+            name = f"rpm_{loss}_{protocol}"
+            cells = [
+                (scores.get(f"general/{name}/{dataset}", {}).get("model"), own == protocol)
+                for own, _, dataset in OBJECT_SPLITS
+            ]
+            text = ["" if v is None else f"{v:.2f}" + ("*" if mine else "") for v, mine in cells]
+            lines.append(f"| `{name}` | " + " | ".join(text) + " |")
+    columns = [[k for k in keys if k.endswith("/" + dataset)] for _, _, dataset in OBJECT_SPLITS]
+    return "\n".join([*lines, *_reference_rows(scores, columns), ""])
 
 
 def run_all(jobs: Iterable[Job], out: Path, register: bool) -> dict[str, dict[str, float]]:
@@ -335,8 +400,9 @@ def main(argv: list[str] | None = None) -> int:
         shipped = {f"rpm_{loss}_airplane": f"rpm_{loss}_airplane" for loss in LOSSES}
         jobs += run_jobs(args.runs) + validation_jobs({**shipped, **mixed} if mixed else {})
         jobs += seed_jobs(args.runs) + choice_jobs(args.runs)
+    jobs += object_jobs(args.runs)
     scores = run_all(jobs, args.out, args.register)
-    tables = (shipped_table, unseen_body_table, mixed_table, choice_table)
+    tables = (shipped_table, unseen_body_table, mixed_table, choice_table, objects_table)
     text = "\n".join(part for part in (table(scores) for table in tables) if part)
     (args.out / "table.md").write_text(text)
     print(text)

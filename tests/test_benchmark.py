@@ -28,7 +28,7 @@ from linereg.io import write_point_cloud, write_transform
 from linereg.metrics import ERROR_KEYS
 from linereg.paths import REPO_ROOT
 from linereg.random_poses import random_transform_paper
-from linereg.registration.benchmark_results import recall_lines, recall_shortfalls
+from linereg.registration.benchmark_results import plot_alpha_recall, recall_lines, recall_shortfalls
 from linereg.registration.methods import MethodResult
 from linereg.structures import PairSample
 from linereg.train.benchmark import (
@@ -118,6 +118,18 @@ def test_write_results_writes_json_table_and_plot(tiny_records, tmp_path):
     errors = {name: [r["err_pw_l2"] for r in tiny_records if r["method"] == name] for name in ("icp_point", "plane")}
     assert recall["below_first"]["plane"] == [list(span) for span in recall_shortfalls(errors)["plane"]]
     assert ("on or above `plane` at every alpha" in table) == (not recall["below_first"]["plane"])
+
+
+def test_the_plot_draws_from_results_json_alone_and_names_its_extra(tiny_records, tmp_path, monkeypatch):
+    """The library draws alpha_recall.png from results.json's content; without matplotlib it says
+    which extra to install."""
+    paths = write_results(tiny_records, tmp_path / "out")
+    content = json.loads(paths["json"].read_text())
+    drawn = plot_alpha_recall(tmp_path / "again.png", content)
+    assert drawn.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    monkeypatch.setitem(sys.modules, "matplotlib.backends.backend_agg", None)
+    with pytest.raises(ModuleNotFoundError, match=r"pip install 'linereg\[plot\]'"):
+        plot_alpha_recall(tmp_path / "none.png", content)
 
 
 def test_recall_shortfalls_cover_every_alpha_not_a_grid():

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+import trimesh
 
 from linereg.datasets import build_dataset
 from scripts import prepare_dataset
@@ -24,6 +25,27 @@ def test_concat_splits_partition_the_parts():
     assert everything[7].meta["part"] == 1
     with pytest.raises(ValueError, match="split must be one of"):
         build_dataset({"name": "concat", "datasets": parts, "split": "val"})
+
+
+def test_concat_common_keys_reach_every_part_and_let_each_split_itself(tmp_path):
+    meshes = tmp_path / "meshes"
+    for category in ("a", "b"):
+        (meshes / category).mkdir(parents=True)
+        for number in range(5):
+            trimesh.creation.box(extents=(1.0, 0.5 + 0.1 * number, 0.3)).export(
+                meshes / category / f"{category}{number}.obj"
+            )
+    part = {"name": "mesh_folder", "root": str(meshes), "split_rule": "random", "train_fraction": 0.6}
+    parts = [{**part, "categories": "a"}, {**part, "categories": "b"}]
+    common = {"protocol": {"name": "airplane", "num_views": 2, "max_angle_deg": 15.0}, "split": "train", "seed": 3}
+    train = build_dataset({"name": "concat", "datasets": parts, "common": common})
+    assert len(train) == 2 * 3 * 2  # each part's 3 training shapes, 2 views each; the concat keeps all
+    assert [p.protocol.max_angle_deg for p in train.parts] == [15.0, 15.0]
+    assert [p.seed for p in train.parts] == [3, 3]
+    test = build_dataset({"name": "concat", "datasets": parts, "common": {**common, "split": "test"}})
+    assert {p.shapes.items[0][0] for p in test.parts} == {"a", "b"} and len(test) == 2 * 2 * 2
+    with pytest.raises(TypeError, match="common must be a mapping"):
+        build_dataset({"name": "concat", "datasets": parts, "common": "train"})
 
 
 def test_prepare_procedural_writes_a_loadable_cache(tmp_path, capsys):

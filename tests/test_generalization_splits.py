@@ -19,6 +19,7 @@ ROOT = Path(__file__).resolve().parent.parent
 SPLITS = {  # split -> its protocol
     "airplane_view_vs_whole": "airplane",
     "airplane_other_categories": "airplane",
+    "airplane_other_categories_held_out": "airplane",
     "human_view_vs_view": "human",
     "human_armadillo": "human",
     "kinect_frames": "real",
@@ -103,10 +104,35 @@ def test_the_mixed_airplane_pairs_are_the_protocols_shapes_with_both_targets(sha
     assert {mixed.protocol.target_of(view) for _, view in pair_identities(mixed)} == {"view", "whole"}
 
 
+def _objects(split: str):
+    """``split`` of the general model's data (every object, both pair types), without a cache."""
+    cfg = _compose("train", ["protocol=airplane", "experiment=rpm_ours", "dataset=objects", "dataset.cache_dir=null"])
+    return build_split(plain(cfg.dataset), split, progress=False)
+
+
+def test_the_general_model_trains_on_no_pair_it_is_scored_on(shared_data):
+    """Every object of the shared data trains the general model, but no test pair of a split it is
+    scored on, and no shape of the held-out shapes' splits; its test split holds the protocols' test
+    pairs and the held-out shapes."""
+    training, test = pair_identities(_objects("train")), pair_identities(_objects("test"))
+    protocols = {"airplane": _protocol("airplane", "test"), "human": _protocol("human", "test")}
+    scored = {**protocols, **{split: _split(split) for split in SPLITS if split != "airplane_other_categories"}}
+    for name, split in scored.items():
+        assert not pair_identities(split) & training, name
+    shapes = {file for file, _ in training}
+    for name in ("airplane_other_categories_held_out", "human_armadillo"):
+        assert not {file for file, _ in pair_identities(scored[name])} & shapes, name
+    assert {Path(file).parent.name for file in shapes} >= {"airplane", "chair", "human", "bunny", "plane"}
+    for name in ("airplane", "human", "airplane_other_categories_held_out"):
+        assert pair_identities(scored[name]) <= test, name
+    assert _objects("train").parts[0].protocol.target == "mixed"
+
+
 TRAINABLE = {  # dataset config -> the protocol it trains under
     "airplane_views": "airplane",
     "airplane_view_vs_whole": "airplane",
     "airplane_mixed_pairs": "airplane",
+    "objects": "airplane",
     "human_bodies": "human",
     "human_view_vs_view": "human",
     "human_unseen_body": "human",

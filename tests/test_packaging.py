@@ -102,7 +102,7 @@ EXTRAS_ALLOWED = {
     "losses": set(),
     "models": set(),
     "datasets": {"train"},  # h5py: ModelNet40's HDF5 files
-    "registration": {"baselines"},  # fricp_cpp
+    "registration": {"baselines", "plot"},  # fricp_cpp; matplotlib: the alpha-recall plot
     "train": {"train", "cluster"},
 }
 

@@ -35,6 +35,7 @@ def test_every_fold_and_seed_of_every_step_is_a_cell_command_with_a_dataset():
         "unseen_body": 3 * 2 * 2,  # bodies x cells x seeds
         "mixed_pairs": 2 * 2,
         "human_choice": 3 * 2,  # three settings of RPM-Ours
+        "objects": 2 * 2,  # the general model and its Chamfer twin x seeds
         "recipe": 2 * 2 * 2,  # Human and Real x cells x the two seeds besides the shipped one
     }
     for folder, args in runs.items():
@@ -47,17 +48,19 @@ def test_every_fold_and_seed_of_every_step_is_a_cell_command_with_a_dataset():
             assert f"protocol=human dataset=human_unseen_body dataset.held_out={body} " in args
         if step == "mixed_pairs":
             assert "protocol=airplane dataset=airplane_mixed_pairs " in args
+        if step == "objects":
+            assert f"protocol=airplane dataset=objects task_name={cell}_objects " in args
         if step == "human_choice":
             nu, lines = name.removeprefix("rpm_ours_nu").split("_lines")
             assert f"loss.nu0={nu} loss.num_lines={lines} " in args
     with initialize_config_dir(str(ROOT / "configs"), version_base="1.3"):
         for args in runs.values():
             cfg = compose("train", overrides=[*args.split(), f"paths.root_dir={ROOT}"])
-            assert cfg.dataset.name in ("mesh_folder", "modelnet40", "rgbd_sequence")
+            assert cfg.dataset.name in ("mesh_folder", "modelnet40", "rgbd_sequence", "concat")
 
 
 def test_an_unknown_step_is_one_line_and_exit_code_2():
     result = _dry(STEPS="unseen_body leave_two_out")
     assert result.returncode == 2 and result.stdout == ""
-    steps = "unseen_body, mixed_pairs, human_choice, seeds"
+    steps = "unseen_body, mixed_pairs, human_choice, objects, seeds"
     assert result.stderr.strip() == f"reproduce_generalization.sh: error: unknown step 'leave_two_out' ({steps})"

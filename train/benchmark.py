@@ -29,7 +29,13 @@ from linereg.datasets.benchmark_pairs import labelled_pairs, select_pairs
 from linereg.metrics import ERROR_KEYS, registration_errors
 from linereg.registration.api import quality
 from linereg.registration.baselines import diameter
-from linereg.registration.benchmark_results import alpha_grid, jsonable, results_content, results_table
+from linereg.registration.benchmark_results import (
+    alpha_grid,
+    jsonable,
+    plot_alpha_recall,
+    results_content,
+    results_table,
+)
 from linereg.registration.methods import METHODS, Method
 from linereg.registry import UnknownNameError
 from linereg.structures import PairSample
@@ -147,32 +153,6 @@ def run_benchmark(
     return records
 
 
-def _plot(path: Path, alphas: np.ndarray, curves: Mapping[str, Sequence[float]], summary, relative: bool) -> None:
-    """Alpha-recall curves beside the mean l2 pointwise error of every method."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    figure, (left, right) = plt.subplots(1, 2, figsize=(11, 4), gridspec_kw={"width_ratios": [3, 2]})
-    for method, recall in curves.items():
-        left.plot(alphas, recall, label=method)
-    left.set_xlabel("alpha / object diameter" if relative else "alpha (l2 pointwise error, pair units)")
-    left.set_ylabel("alpha-recall")
-    if np.all(alphas > 0):
-        left.set_xscale("log")
-    left.set_ylim(0, 1.02)
-    left.grid(alpha=0.3)
-    left.legend()
-    names = list(curves)
-    right.bar(names, [summary[name]["err_pw_l2_mean"] for name in names], color="tab:gray")
-    right.set_ylabel("mean l2 pointwise error")
-    right.tick_params(axis="x", labelrotation=30)
-    figure.tight_layout()
-    figure.savefig(path, dpi=120)
-    plt.close(figure)
-
-
 def write_results(
     records: Sequence[Mapping[str, Any]],
     out_dir: str | Path,
@@ -197,7 +177,8 @@ def write_results(
     Returns:
         ``{"json": ..., "table": ..., "plot": ...}`` paths; ``results.json`` holds
         :func:`~linereg.registration.benchmark_results.results_content`, ``table.md``
-        :func:`~linereg.registration.benchmark_results.results_table`.
+        :func:`~linereg.registration.benchmark_results.results_table`, ``alpha_recall.png``
+        :func:`~linereg.registration.benchmark_results.plot_alpha_recall`.
     """
     if not records:
         raise ValueError("no records to write")
@@ -208,7 +189,7 @@ def write_results(
     paths = {"json": out / "results.json", "table": out / "table.md", "plot": out / "alpha_recall.png"}
     paths["json"].write_text(json.dumps(content, indent=1, allow_nan=True))
     paths["table"].write_text(results_table(records, settings, relative_alpha=relative_alpha))
-    _plot(paths["plot"], alphas, content["alpha_recall"]["recall"], content["summary"], relative_alpha)
+    plot_alpha_recall(paths["plot"], content)
     return paths
 
 

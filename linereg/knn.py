@@ -33,8 +33,10 @@ DENSE_MAX_PAIRS = 2**14
 # 24 MB), elsewhere 2**24 (64 MB of float32).
 _CPU_CHUNK_ELEMENTS = 2**20
 _CHUNK_ELEMENTS = 2**24
-# KD-tree queries of at least this many query x k entries run on all cores.
+# KD-tree queries of at least this many query x k entries run on all cores: a tree built per
+# query (knn_points), and a tree built once and queried many times (NearestNeighbors).
 _PARALLEL_QUERY_MIN = 50_000
+_PARALLEL_INDEX_QUERY_MIN = 8192
 
 
 class KNN(NamedTuple):
@@ -216,7 +218,7 @@ class NearestNeighbors:
         k: int = 1,
         *,
         distance_upper_bound: float = np.inf,
-        workers: int = 1,
+        workers: int | None = None,
     ) -> tuple[np.ndarray, np.ndarray]:
         """The ``k`` nearest indexed points of every query point.
 
@@ -224,12 +226,16 @@ class NearestNeighbors:
             points: array of shape ``(..., 3)`` giving the query points.
             k: neighbours per query point.
             distance_upper_bound: neighbours farther than this are not returned.
-            workers: threads (``-1``: all cores); one is fastest for small queries.
+            workers: threads (``-1``: all cores); ``None``: all cores from 8192 query points x
+                ``k`` on, else one (threads cost more than they save on small queries). The answer
+                does not depend on it.
 
         Returns:
             ``(distances, indices)``: arrays of shape ``(...)`` for ``k=1``, else
             ``(..., k)``, sorted by distance.
         """
+        if workers is None:
+            workers = -1 if np.size(points) // 3 * k >= _PARALLEL_INDEX_QUERY_MIN else 1
         return self._tree.query(points, k=k, distance_upper_bound=distance_upper_bound, workers=workers)
 
 

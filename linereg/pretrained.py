@@ -7,8 +7,10 @@ the command that trained it and its test error. A name goes wherever a checkpoin
     linereg-train experiment=rpm_ours protocol=real init_from=rpm_gt_airplane
     linereg.register(a, b, method="rpm_ours_airplane", refine=True)
 
-Names are ``<experiment>_<protocol>``. Each file is a linereg checkpoint (:mod:`linereg.checkpoint`)
-holding the model weights and the run's resolved config only, with its data paths portable
+Names are ``<experiment>_<protocol>``; ``rpm_ours_objects`` is the general model, trained on every
+object of the shared data with both pair types (``configs/dataset/objects.yaml``). Each file is a
+linereg checkpoint (:mod:`linereg.checkpoint`) holding the model weights and the run's resolved
+config only, with its data paths portable
 (:func:`portable_config`): ``${shared_data}`` stands for the shared data folder
 (``$LINEREG_SHARED_DATA``, else ``../shared/data`` beside the repository) and ``${cache_dir}`` for
 ``./data_cache``, the training command's cache of generated pairs.
@@ -32,7 +34,7 @@ class Pretrained:
     """One shipped network.
 
     Attributes:
-        name: ``<experiment>_<protocol>``, the file ``linereg/weights/<name>.pt``.
+        name: ``<experiment>_<protocol>`` (``_objects``: every object), the file ``linereg/weights/<name>.pt``.
         description: one line: the backbone, the loss and the data it learned from.
         command: the ``linereg-train`` command that trained it.
         test_err_r_deg: mean rotation error (degrees) on its protocol's test pairs, as
@@ -58,6 +60,10 @@ def _cell(experiment: str, protocol: str, description: str, err_r: float) -> Pre
 _AIRPLANE = "ModelNet40 airplanes, two partial views (Airplane protocol)"
 _HUMAN = "a partial view against the whole body of 3 SMPL/SMPL-X bodies (Human protocol)"
 _REAL = "7-Scenes depth frames 20 apart, frames 0-399 (Real protocol)"
+_OBJECTS = (
+    "every object of the shared data: ModelNet40 airplanes and 7 other classes, 3 SMPL/SMPL-X bodies, a bunny "
+    "and a plane mesh, partial views against a second view or the whole shape"
+)
 _ENTRIES = (
     _cell("rpm_gt", "airplane", f"RPM-Net, supervised (ground-truth poses), on {_AIRPLANE}", 1.995),
     _cell("rpm_cd", "airplane", f"RPM-Net, Chamfer distance, no labels, on {_AIRPLANE}", 3.555),
@@ -68,6 +74,12 @@ _ENTRIES = (
     _cell("rpm_gt", "real", f"RPM-Net, supervised (camera poses), on {_REAL}", 5.644),
     _cell("rpm_cd", "real", f"RPM-Net, Chamfer distance, no labels, on {_REAL}", 5.955),
     _cell("rpm_ours", "real", f"RPM-Net, line-intersection loss, no labels, on {_REAL}", 5.141),
+    Pretrained(
+        "rpm_ours_objects",
+        f"RPM-Net, line-intersection loss, no labels, on {_OBJECTS}",
+        "linereg-train experiment=rpm_ours protocol=airplane dataset=objects task_name=rpm_ours_objects seed=0",
+        5.749,
+    ),
 )
 REGISTRY: dict[str, Pretrained] = {entry.name: entry for entry in _ENTRIES}
 

@@ -15,6 +15,8 @@
 #   objects      the general model: RPM-Net on every object of the shared data, both pair types
 #                (configs/dataset/objects.yaml), with the line loss and with Chamfer (rpm_cd and
 #                rpm_ours of CELLS);
+#   real_choice  Real without its easier pairs first: every stage at the test pairs' gap of 20
+#                frames (the recipe's curriculum, re-chosen on validation pairs; rpm_cd, rpm_ours);
 #   seeds        the Human and Real cells themselves at PROTOCOL_SEEDS (default 1 2: seed 0 is the
 #                shipped network), for their generalization splits (as scripts/reproduce_recipe.sh,
 #                into $OUT/recipe/<protocol>/).
@@ -28,7 +30,7 @@ PY=${PYTHON:-.venv/bin/python}
 OUT=${OUT:-outputs/generalization_runs}
 SEEDS=${SEEDS:-0 1 2}
 CELLS=${CELLS:-rpm_gt rpm_cd rpm_ours}
-STEPS=${STEPS:-unseen_body mixed_pairs human_choice objects seeds}
+STEPS=${STEPS:-unseen_body mixed_pairs human_choice objects real_choice seeds}
 PROTOCOL_SEEDS=${PROTOCOL_SEEDS:-1 2}
 BODIES="human_man human_neutral human_woman"
 DRY=${DRY:-0}
@@ -59,13 +61,16 @@ runs() {
         objects)
           [[ $cell == rpm_gt ]] && continue
           echo "$OUT/objects/${cell}_s$seed experiment=$cell protocol=airplane dataset=objects task_name=${cell}_objects seed=$seed" ;;
+        real_choice)
+          [[ $cell == rpm_gt ]] && continue
+          echo "$OUT/real_choice/${cell}_test_gap_s$seed experiment=$cell protocol=real curriculum.stages.easy.variant=null seed=$seed" ;;
         human_choice)
           [[ $cell == rpm_ours ]] || continue
           for setting in "0.5 5000" "2.0 5000" "0.5 20000"; do
             read -r nu lines <<< "$setting"
             echo "$OUT/human_choice/rpm_ours_nu${nu}_lines${lines}_s$seed experiment=rpm_ours protocol=human loss.nu0=$nu loss.num_lines=$lines seed=$seed"
           done ;;
-        *) echo "reproduce_generalization.sh: error: unknown step '$step' (unseen_body, mixed_pairs, human_choice, objects, seeds)" >&2; return 2 ;;
+        *) echo "reproduce_generalization.sh: error: unknown step '$step' (unseen_body, mixed_pairs, human_choice, objects, real_choice, seeds)" >&2; return 2 ;;
       esac
     done
   done

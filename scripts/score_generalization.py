@@ -17,6 +17,9 @@ split of :data:`SPLITS` (a dataset config of ``configs/dataset/``). With ``--run
   validation pairs (fresh poses of every training pair; the choice) and the test pairs;
 * ``recipe/<protocol>/<cell>_s<seed>``: the protocol's own cells at other seeds, on its splits
   (the shipped network is seed 0);
+* ``real_choice/<cell>_test_gap_s<seed>``: the Real cells without easier pairs first, beside the
+  recipe's (the shipped network and ``recipe/real`` runs), on Real's validation pairs (the choice)
+  and test pairs;
 * ``objects/<cell>_s<seed>``: networks trained on every object (``dataset=objects``), with the
   shipped general model ``rpm_ours_objects`` (seed 0) and every shipped protocol network, on every
   split of every protocol (:data:`OBJECT_SPLITS`).
@@ -206,6 +209,41 @@ def choice_jobs(runs: Path) -> list[Job]:
         Job(f"{row}/val", checkpoint, "human_bodies", "val", "human_val", HUMAN_VALIDATION_PAIRS)
         for row, checkpoint in rows.items()
     ] + [Job(f"{row}/test", checkpoint, None, "test", "human_test") for row, checkpoint in rows.items()]
+
+
+def real_choice_jobs(runs: Path) -> list[Job]:
+    """Real's curriculum: the recipe's runs and the ``real_choice`` runs on validation and test pairs."""
+    rows = {f"recipe/rpm_{loss}_s0": f"rpm_{loss}_real" for loss in ("cd", "ours")}
+    rows.update(
+        {f"recipe/{Path(name).name}": str(folder) for name, folder in run_folders(runs / "recipe", "real").items()}
+    )
+    rows.update(
+        {f"test_gap/{Path(name).name}": str(folder) for name, folder in run_folders(runs, "real_choice").items()}
+    )
+    return [
+        Job(f"real_choice/{row}/{split}", checkpoint, None, split, f"real_{split}")
+        for row, checkpoint in rows.items()
+        if "rpm_gt" not in row
+        for split in ("val", "test")
+    ]
+
+
+def real_choice_table(scores: Mapping[str, Mapping[str, float]]) -> str:
+    """Real's curriculum: validation (the choice) and test Err_R per schedule and loss, over seeds."""
+    if not any(key.startswith("real_choice/test_gap/") for key in scores):
+        return ""
+    header = "| schedule | RPM-CD validation | RPM-CD test | RPM-Ours validation | RPM-Ours test |"
+    lines = ["### Real, easier pairs first", "", header, "|---|---:|---:|---:|---:|"]
+    for schedule, label in (("recipe", "gap 6, then gap 20 (the recipe)"), ("test_gap", "gap 20 throughout")):
+        cells = []
+        for loss in ("cd", "ours"):
+            suffix = "_test_gap" if schedule == "test_gap" else ""
+            for split in ("val", "test"):
+                cells.append(
+                    _per_seed(_seeds_of(scores, rf"real_choice/{schedule}/rpm_{loss}{suffix}_s{{seed}}/{split}"))
+                )
+        lines.append(f"| {label} | " + " | ".join(cells) + " |")
+    return "\n".join([*lines, ""])
 
 
 def _pairs_key(protocol: str, dataset: str) -> str:
@@ -400,9 +438,9 @@ def main(argv: list[str] | None = None) -> int:
         shipped = {f"rpm_{loss}_airplane": f"rpm_{loss}_airplane" for loss in LOSSES}
         jobs += run_jobs(args.runs) + validation_jobs({**shipped, **mixed} if mixed else {})
         jobs += seed_jobs(args.runs) + choice_jobs(args.runs)
-    jobs += object_jobs(args.runs)
+    jobs += object_jobs(args.runs) + (real_choice_jobs(args.runs) if args.runs is not None else [])
     scores = run_all(jobs, args.out, args.register)
-    tables = (shipped_table, unseen_body_table, mixed_table, choice_table, objects_table)
+    tables = (shipped_table, unseen_body_table, mixed_table, choice_table, real_choice_table, objects_table)
     text = "\n".join(part for part in (table(scores) for table in tables) if part)
     (args.out / "table.md").write_text(text)
     print(text)

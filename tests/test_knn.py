@@ -220,6 +220,19 @@ def test_nearest_neighbors_matches_naive() -> None:
     np.testing.assert_array_equal(indices, np.argsort(squared[0], axis=-1)[:, :3])
 
 
+def test_nearest_neighbors_answer_the_same_on_every_core() -> None:
+    """A large query runs on all cores by default; the answer equals one thread's, bit for bit."""
+    rng = np.random.default_rng(9)
+    index, query = NearestNeighbors(rng.random((2048, 3))), rng.random((7, 2048, 3))
+    for k, bound in ((1, 0.05), (4, np.inf)):
+        default, single = (
+            index.query(query, k=k, distance_upper_bound=bound),
+            index.query(query, k=k, workers=1, distance_upper_bound=bound),
+        )
+        for ours, theirs in zip(default, single, strict=True):
+            np.testing.assert_array_equal(ours, theirs)
+
+
 def test_nearest_neighbors_upper_bound_marks_missing() -> None:
     index = NearestNeighbors(np.zeros((3, 3)))
     distances, indices = index.query(np.array([[0.0, 0.0, 0.5], [0.0, 0.0, 5.0]]), distance_upper_bound=1.0)

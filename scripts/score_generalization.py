@@ -33,6 +33,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import re
 import sys
 import tempfile
@@ -168,11 +169,12 @@ def validation_jobs(checkpoints: Mapping[str, str]) -> list[Job]:
 
 
 def run_folders(runs: Path, step: str) -> dict[str, Path]:
-    """``{relative name: folder}`` of the finished runs of a step of ``reproduce_generalization.sh``."""
+    """``{relative name: folder}`` of the finished runs of a step of ``reproduce_generalization.sh``
+    (folders linked in from elsewhere included)."""
     found = {}
-    for metrics in sorted((runs / step).glob("**/metrics.json")):
-        if RUN_NAME.match(metrics.parent.name):
-            found[str(metrics.parent.relative_to(runs))] = metrics.parent
+    for folder, _, files in sorted(os.walk(runs / step, followlinks=True)):
+        if "metrics.json" in files and RUN_NAME.match(Path(folder).name):
+            found[str(Path(folder).relative_to(runs))] = Path(folder)
     return found
 
 
@@ -246,10 +248,12 @@ def real_choice_table(scores: Mapping[str, Mapping[str, float]]) -> str:
     return "\n".join([*lines, ""])
 
 
+PROTOCOL_DATA = ("airplane_views", "human_bodies", "sevenscenes_frames")  # each protocol's own test pairs
+
+
 def _pairs_key(protocol: str, dataset: str) -> str:
     """The ``register`` cache of a dataset's test pairs (a protocol's own data: ``<protocol>_test``)."""
-    own = {"airplane_views", "human_bodies", "sevenscenes_frames"}
-    return f"{protocol}_test" if dataset in own else f"{protocol}_{dataset}"
+    return f"{protocol}_test" if dataset in PROTOCOL_DATA else f"{protocol}_{dataset}"
 
 
 def object_jobs(runs: Path | None) -> list[Job]:
@@ -270,30 +274,47 @@ def object_jobs(runs: Path | None) -> list[Job]:
 
 def objects_table(scores: Mapping[str, Mapping[str, float]]) -> str:
     """Every network on every protocol's splits: the general model's rows (mean over seeds, per seed)
-    above the protocol networks (seed 0); ``*`` marks a protocol network on its own protocol."""
+    above the protocol networks (seed 0; ``*``: its own protocol's test pairs), then how often the
+    general model's mean is at most each protocol's RPM-CD on the splits that protocol never trained
+    on (every column but its own test pairs)."""
     keys = [key for key in scores if key.startswith("general/")]
     if not keys:
         return ""
     header = "| network | " + " | ".join(column for _, column, _ in OBJECT_SPLITS) + " |"
     lines = ["### Every object in one network", "", header, "|---|" + "---:|" * len(OBJECT_SPLITS)]
+    general = {}
     for cell in sorted({key.split("/")[2].rsplit("_s", 1)[0] for key in keys if key.startswith("general/objects/")}):
         per_seed = []
         for _, _, dataset in OBJECT_SPLITS:
             seeds = _seeds_of(scores, rf"general/objects/{cell}_s{{seed}}/{dataset}")
             shipped = scores.get(f"general/{GENERAL}/{dataset}", {}).get("model") if cell == "rpm_ours" else None
-            per_seed.append(dict(sorted(({0: shipped} if shipped is not None else {}) | seeds).items()))
+            per_seed.append(dict(sorted((({0: shipped} if shipped is not None else {}) | seeds).items())))
+        general[cell] = [float(np.mean(list(values.values()))) if values else None for values in per_seed]
         lines.append(f"| `{cell}_objects` | " + " | ".join(_per_seed(values) for values in per_seed) + " |")
     for protocol in SPLITS:
         for loss in LOSSES:
             name = f"rpm_{loss}_{protocol}"
             cells = [
-                (scores.get(f"general/{name}/{dataset}", {}).get("model"), own == protocol)
+                (scores.get(f"general/{name}/{dataset}", {}).get("model"), own == protocol and dataset in PROTOCOL_DATA)
                 for own, _, dataset in OBJECT_SPLITS
             ]
             text = ["" if v is None else f"{v:.2f}" + ("*" if mine else "") for v, mine in cells]
             lines.append(f"| `{name}` | " + " | ".join(text) + " |")
     columns = [[k for k in keys if k.endswith("/" + dataset)] for _, _, dataset in OBJECT_SPLITS]
-    return "\n".join([*lines, *_reference_rows(scores, columns), ""])
+    lines += [*_reference_rows(scores, columns), ""]
+    ours = general.get("rpm_ours", [])
+    for protocol in SPLITS if ours else ():
+        rival = [scores.get(f"general/rpm_cd_{protocol}/{dataset}", {}).get("model") for _, _, dataset in OBJECT_SPLITS]
+        outside = [
+            (mine, theirs)
+            for (own, _, dataset), mine, theirs in zip(OBJECT_SPLITS, ours, rival, strict=True)
+            if not (own == protocol and dataset in PROTOCOL_DATA) and mine is not None and theirs is not None
+        ]
+        wins = sum(mine <= theirs for mine, theirs in outside)
+        lines.append(
+            f"- `{GENERAL}` (mean) <= `rpm_cd_{protocol}` on {wins} of {len(outside)} splits it never trained on"
+        )
+    return "\n".join([*lines, ""])
 
 
 def run_all(jobs: Iterable[Job], out: Path, register: bool) -> dict[str, dict[str, float]]:

@@ -67,3 +67,32 @@ def test_an_unknown_step_is_one_line_and_exit_code_2():
     assert result.returncode == 2 and result.stdout == ""
     steps = "unseen_body, mixed_pairs, human_choice, objects, real_choice, seeds"
     assert result.stderr.strip() == f"reproduce_generalization.sh: error: unknown step 'leave_two_out' ({steps})"
+
+
+def test_the_scores_find_linked_runs_and_count_where_the_general_model_wins(tmp_path):
+    """``score_generalization.py`` follows runs linked into its folder, and its general-model table
+    counts, per protocol, the splits that protocol never trained on where the general model's mean
+    is at most that protocol's RPM-CD."""
+    from scripts import score_generalization as scores
+
+    elsewhere = tmp_path / "elsewhere" / "run"
+    elsewhere.mkdir(parents=True)
+    (elsewhere / "metrics.json").write_text("{}")
+    (tmp_path / "runs" / "objects").mkdir(parents=True)
+    (tmp_path / "runs" / "objects" / "rpm_ours_s1").symlink_to(elsewhere)
+    assert scores.run_folders(tmp_path / "runs", "objects") == {
+        "objects/rpm_ours_s1": tmp_path / "runs/objects/rpm_ours_s1"
+    }
+
+    found = {}
+    for protocol, _, dataset in scores.OBJECT_SPLITS:
+        found[f"general/objects/rpm_ours_s1/{dataset}"] = {"model": 2.0, "identity": 40.0}
+        found[f"general/rpm_ours_objects/{dataset}"] = {"model": 4.0, "identity": 40.0}
+        for own in scores.SPLITS:  # each protocol's RPM-CD: 1 on its own test pairs, 3 elsewhere
+            mine = own == protocol and dataset in scores.PROTOCOL_DATA
+            found[f"general/rpm_cd_{own}/{dataset}"] = {"model": 1.0 if mine else 3.0}
+    table = scores.objects_table(found)
+    assert "| `rpm_ours_objects` | 3.00 (4.00, 2.00) |" in table
+    assert "| `rpm_cd_airplane` | 1.00* | 3.00 |" in table
+    for protocol in scores.SPLITS:  # the mean, 3, ties every RPM-CD off its protocol's test pairs
+        assert f"<= `rpm_cd_{protocol}` on 7 of 7 splits it never trained on" in table

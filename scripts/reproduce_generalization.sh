@@ -17,7 +17,7 @@
 #                rpm_ours of CELLS);
 #   real_choice  Real without its easier pairs first: every stage at the test pairs' gap of 20
 #                frames (the recipe's curriculum, re-chosen on validation pairs; rpm_cd, rpm_ours);
-#   seeds        the Human and Real cells themselves at PROTOCOL_SEEDS (default 1 2: seed 0 is the
+#   seeds        the Airplane, Human and Real cells themselves at PROTOCOL_SEEDS (default 1 2: seed 0 is the
 #                shipped network), for their generalization splits (as scripts/reproduce_recipe.sh,
 #                into $OUT/recipe/<protocol>/).
 # Each run is the README's cell command with a dataset choice (and the same machine arguments as
@@ -41,7 +41,7 @@ runs() {
   local step=$1 seed cell body protocol
   if [[ $step == seeds ]]; then
     for seed in $PROTOCOL_SEEDS; do
-      for protocol in human real; do
+      for protocol in airplane human real; do
         for cell in $CELLS; do
           echo "$OUT/recipe/$protocol/${cell}_s$seed experiment=$cell protocol=$protocol seed=$seed"
         done

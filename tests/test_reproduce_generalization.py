@@ -37,7 +37,7 @@ def test_every_fold_and_seed_of_every_step_is_a_cell_command_with_a_dataset():
         "human_choice": 3 * 2,  # three settings of RPM-Ours
         "objects": 2 * 2,  # the general model and its Chamfer twin x seeds
         "real_choice": 2 * 2,  # the Real cells without easier pairs first x seeds
-        "recipe": 2 * 2 * 2,  # Human and Real x cells x the two seeds besides the shipped one
+        "recipe": 3 * 2 * 2,  # the protocols x cells x the two seeds besides the shipped one
     }
     for folder, args in runs.items():
         step, body, name, seed = _parts(folder)

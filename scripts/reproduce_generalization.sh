@@ -17,6 +17,8 @@
 #                rpm_ours of CELLS);
 #   real_choice  Real without its easier pairs first: every stage at the test pairs' gap of 20
 #                frames (the recipe's curriculum, re-chosen on validation pairs; rpm_cd, rpm_ours);
+#   human_stretch  Human with its training pairs stretched per axis by up to 20 % (anisotropic_scale,
+#                validation and test pairs as they are; rpm_cd, rpm_ours);
 #   seeds        the Airplane, Human and Real cells themselves at PROTOCOL_SEEDS (default 1 2: seed 0 is the
 #                shipped network), for their generalization splits (as scripts/reproduce_recipe.sh,
 #                into $OUT/recipe/<protocol>/).
@@ -30,7 +32,7 @@ PY=${PYTHON:-.venv/bin/python}
 OUT=${OUT:-outputs/generalization_runs}
 SEEDS=${SEEDS:-0 1 2}
 CELLS=${CELLS:-rpm_gt rpm_cd rpm_ours}
-STEPS=${STEPS:-unseen_body mixed_pairs human_choice objects real_choice seeds}
+STEPS=${STEPS:-unseen_body mixed_pairs human_choice objects real_choice human_stretch seeds}
 PROTOCOL_SEEDS=${PROTOCOL_SEEDS:-1 2}
 BODIES="human_man human_neutral human_woman"
 DRY=${DRY:-0}
@@ -64,13 +66,16 @@ runs() {
         real_choice)
           [[ $cell == rpm_gt ]] && continue
           echo "$OUT/real_choice/${cell}_test_gap_s$seed experiment=$cell protocol=real curriculum.stages.easy.variant=null seed=$seed" ;;
+        human_stretch)
+          [[ $cell == rpm_gt ]] && continue
+          echo "$OUT/human_stretch/${cell}_stretch0.2_s$seed experiment=$cell protocol=human +dataset.splits.train.protocol.anisotropic_scale=0.2 seed=$seed" ;;
         human_choice)
           [[ $cell == rpm_ours ]] || continue
           for setting in "0.5 5000" "2.0 5000" "0.5 20000"; do
             read -r nu lines <<< "$setting"
             echo "$OUT/human_choice/rpm_ours_nu${nu}_lines${lines}_s$seed experiment=rpm_ours protocol=human loss.nu0=$nu loss.num_lines=$lines seed=$seed"
           done ;;
-        *) echo "reproduce_generalization.sh: error: unknown step '$step' (unseen_body, mixed_pairs, human_choice, objects, real_choice, seeds)" >&2; return 2 ;;
+        *) echo "reproduce_generalization.sh: error: unknown step '$step' (unseen_body, mixed_pairs, human_choice, objects, real_choice, human_stretch, seeds)" >&2; return 2 ;;
       esac
     done
   done

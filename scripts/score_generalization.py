@@ -20,6 +20,8 @@ split of :data:`SPLITS` (a dataset config of ``configs/dataset/``). With ``--run
 * ``real_choice/<cell>_test_gap_s<seed>``: the Real cells without easier pairs first, beside the
   recipe's (the shipped network and ``recipe/real`` runs), on Real's validation pairs (the choice)
   and test pairs;
+* ``human_stretch/<cell>_stretch0.2_s<seed>``: the Human cells trained on stretched pairs, beside
+  the recipe's, on Human's validation pairs (the choice), test pairs and other splits;
 * ``objects/<cell>_s<seed>``: networks trained on every object (``dataset=objects``), with the
   shipped general model ``rpm_ours_objects`` (seed 0) and every shipped protocol network, on every
   split of every protocol (:data:`OBJECT_SPLITS`).
@@ -228,6 +230,55 @@ def real_choice_jobs(runs: Path) -> list[Job]:
         if "rpm_gt" not in row
         for split in ("val", "test")
     ]
+
+
+# (column, dataset config or None for the checkpoint's own, split, cache key's last part)
+STRETCH_SPLITS = [
+    ("validation", "human_bodies", "val", "val"),
+    ("test", None, "test", "test"),
+    *((column, dataset, "test", dataset) for column, dataset in SPLITS["human"][1:]),
+]
+
+
+def stretch_jobs(runs: Path) -> list[Job]:
+    """Human's stretched training pairs: the recipe's runs and the ``human_stretch`` runs on Human's
+    validation pairs (fresh poses of every training pair) and its test splits."""
+    rows = {f"recipe/rpm_{loss}_s0": f"rpm_{loss}_human" for loss in ("cd", "ours")}
+    rows.update({f"recipe/{Path(n).name}": str(f) for n, f in run_folders(runs / "recipe", "human").items()})
+    rows.update({f"stretch/{Path(n).name}": str(f) for n, f in run_folders(runs, "human_stretch").items()})
+    return [
+        Job(
+            f"human_stretch/{row}/{leaf}",
+            checkpoint,
+            dataset,
+            split,
+            f"human_{leaf}",
+            HUMAN_VALIDATION_PAIRS if split == "val" else None,
+        )
+        for row, checkpoint in rows.items()
+        if "rpm_gt" not in row
+        for _, dataset, split, leaf in STRETCH_SPLITS
+    ]
+
+
+def stretch_table(scores: Mapping[str, Mapping[str, float]]) -> str:
+    """Human's stretched training pairs against the recipe: Err_R per split, over seeds."""
+    if not any(key.startswith("human_stretch/stretch/") for key in scores):
+        return ""
+    columns = [column for column, *_ in STRETCH_SPLITS]
+    lines = ["### Human, stretched training pairs", "", "| cell | training pairs | " + " | ".join(columns) + " |"]
+    lines.append("|---|---|" + "---:|" * len(columns))
+    for loss in ("cd", "ours"):
+        for schedule, suffix, label in (
+            ("recipe", "", "as they are (the recipe)"),
+            ("stretch", "_stretch0.2", "stretched by up to 20 %"),
+        ):
+            cells = [
+                _per_seed(_seeds_of(scores, rf"human_stretch/{schedule}/rpm_{loss}{suffix}_s{{seed}}/{leaf}"))
+                for *_, leaf in STRETCH_SPLITS
+            ]
+            lines.append(f"| rpm_{loss} | {label} | " + " | ".join(cells) + " |")
+    return "\n".join([*lines, ""])
 
 
 def real_choice_table(scores: Mapping[str, Mapping[str, float]]) -> str:
@@ -459,9 +510,19 @@ def main(argv: list[str] | None = None) -> int:
         shipped = {f"rpm_{loss}_airplane": f"rpm_{loss}_airplane" for loss in LOSSES}
         jobs += run_jobs(args.runs) + validation_jobs({**shipped, **mixed} if mixed else {})
         jobs += seed_jobs(args.runs) + choice_jobs(args.runs)
-    jobs += object_jobs(args.runs) + (real_choice_jobs(args.runs) if args.runs is not None else [])
+    jobs += object_jobs(args.runs)
+    if args.runs is not None:
+        jobs += real_choice_jobs(args.runs) + stretch_jobs(args.runs)
     scores = run_all(jobs, args.out, args.register)
-    tables = (shipped_table, unseen_body_table, mixed_table, choice_table, real_choice_table, objects_table)
+    tables = (
+        shipped_table,
+        unseen_body_table,
+        mixed_table,
+        choice_table,
+        real_choice_table,
+        stretch_table,
+        objects_table,
+    )
     text = "\n".join(part for part in (table(scores) for table in tables) if part)
     (args.out / "table.md").write_text(text)
     print(text)

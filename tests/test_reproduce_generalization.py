@@ -37,11 +37,12 @@ def test_every_fold_and_seed_of_every_step_is_a_cell_command_with_a_dataset():
         "human_choice": 3 * 2,  # three settings of RPM-Ours
         "objects": 2 * 2,  # the general model and its Chamfer twin x seeds
         "real_choice": 2 * 2,  # the Real cells without easier pairs first x seeds
+        "human_stretch": 2 * 2,  # the Human cells on stretched training pairs x seeds
         "recipe": 3 * 2 * 2,  # the protocols x cells x the two seeds besides the shipped one
     }
     for folder, args in runs.items():
         step, body, name, seed = _parts(folder)
-        cell = "rpm_ours" if step == "human_choice" else name.removesuffix("_test_gap")
+        cell = "rpm_ours" if step == "human_choice" else name.removesuffix("_test_gap").removesuffix("_stretch0.2")
         if step == "recipe":
             assert args == f"experiment={cell} protocol={body} seed={seed}" and seed in ("1", "2")
         assert args.startswith(f"experiment={cell} ") and args.endswith(f" seed={seed}")
@@ -51,6 +52,11 @@ def test_every_fold_and_seed_of_every_step_is_a_cell_command_with_a_dataset():
             assert "protocol=airplane dataset=airplane_mixed_pairs " in args
         if step == "real_choice":
             assert args == f"experiment={cell} protocol=real curriculum.stages.easy.variant=null seed={seed}"
+        if step == "human_stretch":
+            assert (
+                args
+                == f"experiment={cell} protocol=human +dataset.splits.train.protocol.anisotropic_scale=0.2 seed={seed}"
+            )
         if step == "objects":
             assert f"protocol=airplane dataset=objects task_name={cell}_objects " in args
         if step == "human_choice":
@@ -65,7 +71,7 @@ def test_every_fold_and_seed_of_every_step_is_a_cell_command_with_a_dataset():
 def test_an_unknown_step_is_one_line_and_exit_code_2():
     result = _dry(STEPS="unseen_body leave_two_out")
     assert result.returncode == 2 and result.stdout == ""
-    steps = "unseen_body, mixed_pairs, human_choice, objects, real_choice, seeds"
+    steps = "unseen_body, mixed_pairs, human_choice, objects, real_choice, human_stretch, seeds"
     assert result.stderr.strip() == f"reproduce_generalization.sh: error: unknown step 'leave_two_out' ({steps})"
 
 

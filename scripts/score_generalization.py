@@ -215,19 +215,25 @@ def choice_jobs(runs: Path) -> list[Job]:
     ] + [Job(f"{row}/test", checkpoint, None, "test", "human_test") for row, checkpoint in rows.items()]
 
 
+def _recipe_rows(runs: Path, protocol: str) -> dict[str, str]:
+    """``{row: checkpoint}`` of the protocol's RPM-CD and RPM-Ours under the recipe: seed 0 the
+    shipped network, other seeds the ``recipe/<protocol>`` runs."""
+    rows = {f"recipe/rpm_{loss}_s0": f"rpm_{loss}_{protocol}" for loss in ("cd", "ours")}
+    for name, folder in run_folders(runs / "recipe", protocol).items():
+        if not Path(name).name.startswith("rpm_gt"):
+            rows[f"recipe/{Path(name).name}"] = str(folder)
+    return rows
+
+
 def real_choice_jobs(runs: Path) -> list[Job]:
     """Real's curriculum: the recipe's runs and the ``real_choice`` runs on validation and test pairs."""
-    rows = {f"recipe/rpm_{loss}_s0": f"rpm_{loss}_real" for loss in ("cd", "ours")}
-    rows.update(
-        {f"recipe/{Path(name).name}": str(folder) for name, folder in run_folders(runs / "recipe", "real").items()}
-    )
+    rows = _recipe_rows(runs, "real")
     rows.update(
         {f"test_gap/{Path(name).name}": str(folder) for name, folder in run_folders(runs, "real_choice").items()}
     )
     return [
         Job(f"real_choice/{row}/{split}", checkpoint, None, split, f"real_{split}")
         for row, checkpoint in rows.items()
-        if "rpm_gt" not in row
         for split in ("val", "test")
     ]
 
@@ -243,8 +249,7 @@ STRETCH_SPLITS = [
 def stretch_jobs(runs: Path) -> list[Job]:
     """Human's stretched training pairs: the recipe's runs and the ``human_stretch`` runs on Human's
     validation pairs (fresh poses of every training pair) and its test splits."""
-    rows = {f"recipe/rpm_{loss}_s0": f"rpm_{loss}_human" for loss in ("cd", "ours")}
-    rows.update({f"recipe/{Path(n).name}": str(f) for n, f in run_folders(runs / "recipe", "human").items()})
+    rows = _recipe_rows(runs, "human")
     rows.update({f"stretch/{Path(n).name}": str(f) for n, f in run_folders(runs, "human_stretch").items()})
     return [
         Job(
@@ -256,7 +261,6 @@ def stretch_jobs(runs: Path) -> list[Job]:
             HUMAN_VALIDATION_PAIRS if split == "val" else None,
         )
         for row, checkpoint in rows.items()
-        if "rpm_gt" not in row
         for _, dataset, split, leaf in STRETCH_SPLITS
     ]
 

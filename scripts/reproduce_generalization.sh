@@ -19,9 +19,10 @@
 #                frames (the recipe's curriculum, re-chosen on validation pairs; rpm_cd, rpm_ours);
 #   human_stretch  Human with its training pairs stretched per axis by up to 20 % (anisotropic_scale,
 #                validation and test pairs as they are; rpm_cd, rpm_ours);
-#   seeds        the Airplane, Human and Real cells themselves at PROTOCOL_SEEDS (default 1 2: seed 0 is the
-#                shipped network), for their generalization splits (as scripts/reproduce_recipe.sh,
-#                into $OUT/recipe/<protocol>/).
+#   seeds        the cells of PROTOCOLS (default airplane human real) themselves at PROTOCOL_SEEDS
+#                (default 1 2: seed 0 is the shipped RPM-Net), for their generalization splits (as
+#                scripts/reproduce_recipe.sh, into $OUT/recipe/<protocol>/); the FMR and DCP rows:
+#                STEPS=seeds CELLS="fmr_cd fmr_ours" PROTOCOL_SEEDS="0 1 2".
 # Each run is the README's cell command with a dataset choice (and the same machine arguments as
 # scripts/reproduce_recipe.sh: one thread, no progress bars). Finished runs (metrics.json present)
 # are skipped, an interrupted one resumes. Runs land in $OUT/<step>/...; the scores of every run and
@@ -34,6 +35,7 @@ SEEDS=${SEEDS:-0 1 2}
 CELLS=${CELLS:-rpm_gt rpm_cd rpm_ours}
 STEPS=${STEPS:-unseen_body mixed_pairs human_choice objects real_choice human_stretch seeds}
 PROTOCOL_SEEDS=${PROTOCOL_SEEDS:-1 2}
+PROTOCOLS=${PROTOCOLS:-airplane human real}
 BODIES="human_man human_neutral human_woman"
 DRY=${DRY:-0}
 export OMP_NUM_THREADS=${OMP_NUM_THREADS:-1}
@@ -43,7 +45,7 @@ runs() {
   local step=$1 seed cell body protocol
   if [[ $step == seeds ]]; then
     for seed in $PROTOCOL_SEEDS; do
-      for protocol in airplane human real; do
+      for protocol in $PROTOCOLS; do
         for cell in $CELLS; do
           echo "$OUT/recipe/$protocol/${cell}_s$seed experiment=$cell protocol=$protocol seed=$seed"
         done

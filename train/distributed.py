@@ -127,7 +127,13 @@ def setup(device_spec: str = "auto") -> DistContext:
 
 
 def teardown(ctx: DistContext) -> None:
-    """Leave the process group (no-op for a single process)."""
+    """Leave the process group (no-op for a single process).
+
+    Free every DistributedDataParallel wrapper first (the trainer does so when it finishes). A
+    wrapper's reducer holds the group; freed after this call, it would run the group's destructor
+    with the GIL held, which waits for gloo's worker threads while one of them waits for the GIL
+    to drop its last collective: the process hangs at exit.
+    """
     if ctx.enabled and dist.is_initialized():
         dist.destroy_process_group()
 

@@ -26,6 +26,7 @@ order (a function of seed and epoch), optimizer, scheduler, curriculum stage and
 
 from __future__ import annotations
 
+import gc
 import logging
 import math
 import os
@@ -385,7 +386,15 @@ class Trainer:
             log.warning("interrupted; continue with: python -m train resume=%s", self.run_dir)
             raise
         finally:
+            self._release_ddp()
             self.logger.close()
+
+    def _release_ddp(self) -> None:
+        """Free the DistributedDataParallel wrapper now, while the process group is registered
+        (:func:`~linereg.train.distributed.teardown` says why)."""
+        if self.ddp_model is not self.model:
+            self.ddp_model = self.model
+            gc.collect()
 
     def _run_epochs(self, checkpoints: Path) -> None:
         """Train, validate and checkpoint every remaining epoch."""

@@ -17,6 +17,9 @@
 #                rpm_ours of CELLS);
 #   real_choice  Real without its easier pairs first: every stage at the test pairs' gap of 20
 #                frames (the recipe's curriculum, re-chosen on validation pairs; rpm_cd, rpm_ours);
+#   dcp_choice   DCP on Airplane without its full-range stage: 4 epochs of easy poses only (the recipe's
+#                stage, re-chosen on validation pairs; DCP's twins of the cd and ours cells of CELLS;
+#                the recipe's runs: STEPS=seeds CELLS="dcp_cd dcp_ours" PROTOCOLS=airplane);
 #   human_stretch  Human with its training pairs stretched per axis by up to 20 % (anisotropic_scale,
 #                validation and test pairs as they are; rpm_cd, rpm_ours);
 #   seeds        the cells of PROTOCOLS (default airplane human real) themselves at PROTOCOL_SEEDS
@@ -33,7 +36,7 @@ PY=${PYTHON:-.venv/bin/python}
 OUT=${OUT:-outputs/generalization_runs}
 SEEDS=${SEEDS:-0 1 2}
 CELLS=${CELLS:-rpm_gt rpm_cd rpm_ours}
-STEPS=${STEPS:-unseen_body mixed_pairs human_choice objects real_choice human_stretch seeds}
+STEPS=${STEPS:-unseen_body mixed_pairs human_choice objects real_choice dcp_choice human_stretch seeds}
 PROTOCOL_SEEDS=${PROTOCOL_SEEDS:-1 2}
 PROTOCOLS=${PROTOCOLS:-airplane human real}
 BODIES="human_man human_neutral human_woman"
@@ -68,6 +71,9 @@ runs() {
         real_choice)
           [[ $cell == rpm_gt ]] && continue
           echo "$OUT/real_choice/${cell}_test_gap_s$seed experiment=$cell protocol=real curriculum.stages.easy.variant=null seed=$seed" ;;
+        dcp_choice)
+          [[ ${cell##*_} == cd || ${cell##*_} == ours ]] || continue
+          echo "$OUT/dcp_choice/dcp_${cell##*_}_easy_only_s$seed experiment=dcp_${cell##*_} protocol=airplane curriculum=cpu_airplane seed=$seed" ;;
         human_stretch)
           [[ $cell == rpm_gt ]] && continue
           echo "$OUT/human_stretch/${cell}_stretch0.2_s$seed experiment=$cell protocol=human +dataset.splits.train.protocol.anisotropic_scale=0.2 seed=$seed" ;;
@@ -77,7 +83,7 @@ runs() {
             read -r nu lines <<< "$setting"
             echo "$OUT/human_choice/rpm_ours_nu${nu}_lines${lines}_s$seed experiment=rpm_ours protocol=human loss.nu0=$nu loss.num_lines=$lines seed=$seed"
           done ;;
-        *) echo "reproduce_generalization.sh: error: unknown step '$step' (unseen_body, mixed_pairs, human_choice, objects, real_choice, human_stretch, seeds)" >&2; return 2 ;;
+        *) echo "reproduce_generalization.sh: error: unknown step '$step' (unseen_body, mixed_pairs, human_choice, objects, real_choice, dcp_choice, human_stretch, seeds)" >&2; return 2 ;;
       esac
     done
   done

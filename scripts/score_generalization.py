@@ -8,18 +8,16 @@ The shipped networks ``rpm_{gt,cd,ours}_<protocol>`` of :mod:`linereg.pretrained
 split of :data:`SPLITS` (a dataset config of ``configs/dataset/``). With ``--runs`` (the folder of
 ``scripts/reproduce_generalization.sh``), also:
 
-* ``unseen_body/<body>/<cell>_s<seed>``: each leave-one-body-out run on its own test split, the
-  body its training never saw;
+* ``unseen_body/<body>/<cell>_s<seed>``: each leave-one-body-out run on the body it never saw;
 * ``mixed_pairs/<cell>_s<seed>``: each run trained on both Airplane pair types, on the Airplane
-  splits, and on the validation pairs of both pair types (fresh poses of training shapes, the
-  pairs the recipe's choice is made on) beside the shipped view-vs-view networks;
+  splits and on validation pairs of both pair types (fresh poses of training shapes: the choice);
 * ``human_choice/<settings>_s<seed>``: RPM-Ours on Human at other line-loss settings, on the
-  validation pairs (fresh poses of every training pair; the choice) and the test pairs;
-* ``recipe/<protocol>/<cell>_s<seed>``: the protocol's own cells at other seeds, on its splits
-  (the shipped network is seed 0);
-* ``real_choice/<cell>_test_gap_s<seed>``: the Real cells without easier pairs first, beside the
-  recipe's (the shipped network and ``recipe/real`` runs), on Real's validation pairs (the choice)
-  and test pairs;
+  validation pairs (fresh poses of every training pair: the choice) and the test pairs;
+* ``recipe/<protocol>/<cell>_s<seed>``: the protocol's own cells (any backbone) at other seeds, on
+  its splits (the shipped RPM-Net is seed 0);
+* ``real_choice/<cell>_test_gap_s<seed>``, ``dcp_choice/<cell>_easy_only_s<seed>``: Real without
+  easier pairs first, DCP on Airplane without its full-range stage, beside the recipe's runs, on
+  validation pairs (the choice) and test pairs (:data:`SCHEDULE_CHOICES`);
 * ``human_stretch/<cell>_stretch0.2_s<seed>``: the Human cells trained on stretched pairs, beside
   the recipe's, on Human's validation pairs (the choice), test pairs and other splits;
 * ``objects/<cell>_s<seed>``: networks trained on every object (``dataset=objects``), with the
@@ -50,44 +48,27 @@ from hydra import compose, initialize_config_dir
 from linereg.train import CONFIG_DIR
 from linereg.train.evaluate import evaluate
 
-IN_PROTOCOL = "in-protocol"
-# protocol -> (column, dataset config or None for the checkpoint's own test pairs)
-SPLITS: dict[str, list[tuple[str, str | None]]] = {
-    "airplane": [
-        (IN_PROTOCOL, None),
-        ("view vs whole shape", "airplane_view_vs_whole"),
-        ("7 other ModelNet40 classes", "airplane_other_categories"),
-    ],
-    "human": [
-        (IN_PROTOCOL, None),
-        ("view vs view", "human_view_vs_view"),
-        ("armadillo (no SMPL body)", "human_armadillo"),
-    ],
-    "real": [(IN_PROTOCOL, None), ("Kinect frames (SLAM poses)", "kinect_frames")],
-}
-LOSSES = ("gt", "cd", "ours")
-BODIES = ("human_man", "human_neutral", "human_woman")
-# The validation pairs of the mixed-pairs choice: fresh poses (the val split's seed) of 144
-# training pairs, one column per pair type.
-VALIDATION_PAIRS = 144
-VALIDATION = [("val: view vs view", "airplane_views"), ("val: view vs whole", "airplane_view_vs_whole")]
-# The mixed-pairs runs on the Airplane splits; airplane_views holds the protocol's own pairs.
-MIXED_SPLITS = [(IN_PROTOCOL, "airplane_views"), *SPLITS["airplane"][1:]]
-# The general model's table: every protocol's splits; other classes only as the shapes it held out.
-OBJECT_SPLITS: list[tuple[str, str, str]] = [  # (protocol, column, dataset config)
-    ("airplane", "Airplane in-protocol", "airplane_views"),
-    ("airplane", "Airplane view vs whole", "airplane_view_vs_whole"),
-    ("airplane", "6 held-out shapes of 7 other classes", "airplane_other_categories_held_out"),
-    ("human", "Human in-protocol", "human_bodies"),
-    ("human", "Human view vs view", "human_view_vs_view"),
-    ("human", "armadillo", "human_armadillo"),
-    ("real", "Real in-protocol", "sevenscenes_frames"),
-    ("real", "Kinect frames", "kinect_frames"),
-]
-GENERAL = "rpm_ours_objects"
+REPO_ROOT = Path(__file__).resolve().parent.parent
+if str(REPO_ROOT) not in sys.path:
+    sys.path.insert(0, str(REPO_ROOT))
+
+from scripts._generalization_tables import (  # noqa: E402
+    GENERAL,
+    HUMAN_VALIDATION_PAIRS,
+    IN_PROTOCOL,
+    LOSSES,
+    MIXED_SPLITS,
+    OBJECT_SPLITS,
+    PROTOCOL_DATA,
+    SCHEDULE_CHOICES,
+    SPLITS,
+    STRETCH_SPLITS,
+    TABLES,
+    VALIDATION,
+    VALIDATION_PAIRS,
+)
+
 RUN_NAME = re.compile(r".+_s\d+$")  # <cell or settings>_s<seed>
-# The Human runs on the validation pairs of their choice: fresh poses of every training pair.
-HUMAN_VALIDATION_PAIRS = 120
 
 
 @dataclass(frozen=True)
@@ -215,35 +196,29 @@ def choice_jobs(runs: Path) -> list[Job]:
     ] + [Job(f"{row}/test", checkpoint, None, "test", "human_test") for row, checkpoint in rows.items()]
 
 
-def _recipe_rows(runs: Path, protocol: str) -> dict[str, str]:
-    """``{row: checkpoint}`` of the protocol's RPM-CD and RPM-Ours under the recipe: seed 0 the
-    shipped network, other seeds the ``recipe/<protocol>`` runs."""
-    rows = {f"recipe/rpm_{loss}_s0": f"rpm_{loss}_{protocol}" for loss in ("cd", "ours")}
+def _recipe_rows(runs: Path, protocol: str, backbone: str = "rpm") -> dict[str, str]:
+    """``{row: checkpoint}`` of the protocol's CD and Ours cells of a backbone under the recipe: the
+    ``recipe/<protocol>`` runs, and for RPM-Net the shipped networks as seed 0."""
+    rows = {f"recipe/rpm_{loss}_s0": f"rpm_{loss}_{protocol}" for loss in ("cd", "ours")} if backbone == "rpm" else {}
     for name, folder in run_folders(runs / "recipe", protocol).items():
-        if not Path(name).name.startswith("rpm_gt"):
+        if Path(name).name.startswith((f"{backbone}_cd_s", f"{backbone}_ours_s")):
             rows[f"recipe/{Path(name).name}"] = str(folder)
     return rows
 
 
-def real_choice_jobs(runs: Path) -> list[Job]:
-    """Real's curriculum: the recipe's runs and the ``real_choice`` runs on validation and test pairs."""
-    rows = _recipe_rows(runs, "real")
-    rows.update(
-        {f"test_gap/{Path(name).name}": str(folder) for name, folder in run_folders(runs, "real_choice").items()}
-    )
-    return [
-        Job(f"real_choice/{row}/{split}", checkpoint, None, split, f"real_{split}")
-        for row, checkpoint in rows.items()
-        for split in ("val", "test")
-    ]
-
-
-# (column, dataset config or None for the checkpoint's own, split, cache key's last part)
-STRETCH_SPLITS = [
-    ("validation", "human_bodies", "val", "val"),
-    ("test", None, "test", "test"),
-    *((column, dataset, "test", dataset) for column, dataset in SPLITS["human"][1:]),
-]
+def schedule_jobs(runs: Path) -> list[Job]:
+    """Each :data:`SCHEDULE_CHOICES` step: the recipe's runs and the step's runs on validation and test pairs."""
+    jobs = []
+    for step, choice in SCHEDULE_CHOICES.items():
+        rows = _recipe_rows(runs, choice.protocol, choice.backbone)
+        alternative = choice.suffix.lstrip("_")
+        rows.update({f"{alternative}/{Path(n).name}": str(f) for n, f in run_folders(runs, step).items()})
+        for row, checkpoint in rows.items():
+            for split in ("val", "test"):
+                subset = choice.val_pairs if split == "val" else None
+                key = f"{choice.protocol}_{split}" + (f"_{subset}" if subset else "")
+                jobs.append(Job(f"{step}/{row}/{split}", checkpoint, None, split, key, subset))
+    return jobs
 
 
 def stretch_jobs(runs: Path) -> list[Job]:
@@ -263,47 +238,6 @@ def stretch_jobs(runs: Path) -> list[Job]:
         for row, checkpoint in rows.items()
         for _, dataset, split, leaf in STRETCH_SPLITS
     ]
-
-
-def stretch_table(scores: Mapping[str, Mapping[str, float]]) -> str:
-    """Human's stretched training pairs against the recipe: Err_R per split, over seeds."""
-    if not any(key.startswith("human_stretch/stretch/") for key in scores):
-        return ""
-    columns = [column for column, *_ in STRETCH_SPLITS]
-    lines = ["### Human, stretched training pairs", "", "| cell | training pairs | " + " | ".join(columns) + " |"]
-    lines.append("|---|---|" + "---:|" * len(columns))
-    for loss in ("cd", "ours"):
-        for schedule, suffix, label in (
-            ("recipe", "", "as they are (the recipe)"),
-            ("stretch", "_stretch0.2", "stretched by up to 20 %"),
-        ):
-            cells = [
-                _per_seed(_seeds_of(scores, rf"human_stretch/{schedule}/rpm_{loss}{suffix}_s{{seed}}/{leaf}"))
-                for *_, leaf in STRETCH_SPLITS
-            ]
-            lines.append(f"| rpm_{loss} | {label} | " + " | ".join(cells) + " |")
-    return "\n".join([*lines, ""])
-
-
-def real_choice_table(scores: Mapping[str, Mapping[str, float]]) -> str:
-    """Real's curriculum: validation (the choice) and test Err_R per schedule and loss, over seeds."""
-    if not any(key.startswith("real_choice/test_gap/") for key in scores):
-        return ""
-    header = "| schedule | RPM-CD validation | RPM-CD test | RPM-Ours validation | RPM-Ours test |"
-    lines = ["### Real, easier pairs first", "", header, "|---|---:|---:|---:|---:|"]
-    for schedule, label in (("recipe", "gap 6, then gap 20 (the recipe)"), ("test_gap", "gap 20 throughout")):
-        cells = []
-        for loss in ("cd", "ours"):
-            suffix = "_test_gap" if schedule == "test_gap" else ""
-            for split in ("val", "test"):
-                cells.append(
-                    _per_seed(_seeds_of(scores, rf"real_choice/{schedule}/rpm_{loss}{suffix}_s{{seed}}/{split}"))
-                )
-        lines.append(f"| {label} | " + " | ".join(cells) + " |")
-    return "\n".join([*lines, ""])
-
-
-PROTOCOL_DATA = ("airplane_views", "human_bodies", "sevenscenes_frames")  # each protocol's own test pairs
 
 
 def _pairs_key(protocol: str, dataset: str) -> str:
@@ -327,51 +261,6 @@ def object_jobs(runs: Path | None) -> list[Job]:
     ]
 
 
-def objects_table(scores: Mapping[str, Mapping[str, float]]) -> str:
-    """Every network on every protocol's splits: the general model's rows (mean over seeds, per seed)
-    above the protocol networks (seed 0; ``*``: its own protocol's test pairs), then how often the
-    general model's mean is at most each protocol's RPM-CD on the splits that protocol never trained
-    on (every column but its own test pairs)."""
-    keys = [key for key in scores if key.startswith("general/")]
-    if not keys:
-        return ""
-    header = "| network | " + " | ".join(column for _, column, _ in OBJECT_SPLITS) + " |"
-    lines = ["### Every object in one network", "", header, "|---|" + "---:|" * len(OBJECT_SPLITS)]
-    general = {}
-    for cell in sorted({key.split("/")[2].rsplit("_s", 1)[0] for key in keys if key.startswith("general/objects/")}):
-        per_seed = []
-        for _, _, dataset in OBJECT_SPLITS:
-            seeds = _seeds_of(scores, rf"general/objects/{cell}_s{{seed}}/{dataset}")
-            shipped = scores.get(f"general/{GENERAL}/{dataset}", {}).get("model") if cell == "rpm_ours" else None
-            per_seed.append(dict(sorted((({0: shipped} if shipped is not None else {}) | seeds).items())))
-        general[cell] = [float(np.mean(list(values.values()))) if values else None for values in per_seed]
-        lines.append(f"| `{cell}_objects` | " + " | ".join(_per_seed(values) for values in per_seed) + " |")
-    for protocol in SPLITS:
-        for loss in LOSSES:
-            name = f"rpm_{loss}_{protocol}"
-            cells = [
-                (scores.get(f"general/{name}/{dataset}", {}).get("model"), own == protocol and dataset in PROTOCOL_DATA)
-                for own, _, dataset in OBJECT_SPLITS
-            ]
-            text = ["" if v is None else f"{v:.2f}" + ("*" if mine else "") for v, mine in cells]
-            lines.append(f"| `{name}` | " + " | ".join(text) + " |")
-    columns = [[k for k in keys if k.endswith("/" + dataset)] for _, _, dataset in OBJECT_SPLITS]
-    lines += [*_reference_rows(scores, columns), ""]
-    ours = general.get("rpm_ours", [])
-    for protocol in SPLITS if ours else ():
-        rival = [scores.get(f"general/rpm_cd_{protocol}/{dataset}", {}).get("model") for _, _, dataset in OBJECT_SPLITS]
-        outside = [
-            (mine, theirs)
-            for (own, _, dataset), mine, theirs in zip(OBJECT_SPLITS, ours, rival, strict=True)
-            if not (own == protocol and dataset in PROTOCOL_DATA) and mine is not None and theirs is not None
-        ]
-        wins = sum(mine <= theirs for mine, theirs in outside)
-        lines.append(
-            f"- `{GENERAL}` (mean) <= `rpm_cd_{protocol}` on {wins} of {len(outside)} splits it never trained on"
-        )
-    return "\n".join([*lines, ""])
-
-
 def run_all(jobs: Iterable[Job], out: Path, register: bool) -> dict[str, dict[str, float]]:
     """``{job key: score}``, scoring what is not cached yet."""
     results = {}
@@ -388,148 +277,6 @@ def run_all(jobs: Iterable[Job], out: Path, register: bool) -> dict[str, dict[st
     return results
 
 
-def _cells(values: list[float | None]) -> str:
-    """`` | ``-joined cells, empty where no value."""
-    return " | ".join("" if v is None else f"{v:.2f}" for v in values)
-
-
-def _reference_rows(scores: Mapping[str, Mapping[str, float]], keys: list[list[str]]) -> list[str]:
-    """The identity and ``register`` rows: per column, the value of the first scored key that has it."""
-    lines = []
-    for row, label in (("identity", "identity (no motion)"), ("register", "`linereg.register`")):
-        cells = [next((scores[k][row] for k in column if k in scores and row in scores[k]), None) for column in keys]
-        if any(value is not None for value in cells):
-            lines.append(f"| {label} | {_cells(cells)} |")
-    return lines
-
-
-def _cell_seeds(scores: Mapping[str, Mapping[str, float]], protocol: str, cell: str, pairs: str) -> dict[int, float]:
-    """``{seed: Err_R}`` of a protocol's cell (``rpm_ours``) on a split: the ``recipe/<protocol>``
-    runs, and for RPM-Net the shipped network as seed 0."""
-    seeds = _seeds_of(scores, rf"recipe/{protocol}/{cell}_s{{seed}}/{pairs}")
-    shipped = scores.get(f"{cell}_{protocol}/{pairs}", {}).get("model")
-    return dict(sorted((({0: shipped} if shipped is not None else {}) | seeds).items()))
-
-
-def shipped_table(scores: Mapping[str, Mapping[str, float]]) -> str:
-    """Per protocol, a row per cell, a column per split: RPM-Net's shipped networks (seed 0) and the
-    ``recipe/<protocol>`` runs (other seeds, other backbones), as ``mean (seed 0, seed 1, ...)``;
-    below, per backbone, on how many splits beyond the protocol's test pairs the line loss's mean is
-    at most Chamfer's, and on how many it is so on at least 2 of 3 seeds (seeds paired by number)."""
-    lines = []
-    for protocol, splits in SPLITS.items():
-        columns = [column for column, _ in splits]
-        lines += [f"### {protocol}", "", "| network | " + " | ".join(columns) + " |", "|---|" + "---:|" * len(columns)]
-        keys = [[f"rpm_{loss}_{protocol}/{dataset or 'test'}" for loss in LOSSES] for _, dataset in splits]
-        trained = {key.split("/")[2].rsplit("_s", 1)[0] for key in scores if key.startswith(f"recipe/{protocol}/")}
-        backbones = ["rpm", *sorted({cell.split("_")[0] for cell in trained} - {"rpm"})]
-        verdicts = []
-        for backbone in backbones:
-            per_cell = {}
-            for loss in LOSSES:
-                cell = f"{backbone}_{loss}"
-                per_cell[loss] = [_cell_seeds(scores, protocol, cell, dataset or "test") for _, dataset in splits]
-                if backbone == "rpm" or cell in trained:
-                    lines.append(f"| `{cell}_{protocol}` | " + " | ".join(_per_seed(v) for v in per_cell[loss]) + " |")
-            verdicts.append(_line_loss_verdict(backbone, per_cell["ours"][1:], per_cell["cd"][1:]))
-        lines += [*_reference_rows(scores, keys), "", *filter(None, verdicts), ""]
-    return "\n".join(lines)
-
-
-def _line_loss_verdict(backbone: str, ours: list[dict[int, float]], cd: list[dict[int, float]]) -> str:
-    """How often ``<backbone>_ours`` is at most ``<backbone>_cd`` on the splits (``{seed: Err_R}`` each)."""
-    paired = [(mine, theirs) for mine, theirs in zip(ours, cd, strict=True) if set(mine) & set(theirs)]
-    if not paired:
-        return ""
-    on_mean = sum(np.mean(list(mine.values())) <= np.mean(list(theirs.values())) for mine, theirs in paired)
-    on_seeds = sum(
-        sum(mine[seed] <= theirs[seed] for seed in set(mine) & set(theirs)) >= min(2, len(set(mine) & set(theirs)))
-        for mine, theirs in paired
-    )
-    return (
-        f"- `{backbone}_ours` <= `{backbone}_cd` beyond the protocol's test pairs: on the mean on {on_mean} of "
-        f"{len(paired)} splits, on at least 2 of 3 seeds on {on_seeds}"
-    )
-
-
-def _seeds_of(scores: Mapping[str, Mapping[str, float]], pattern: str) -> dict[int, float]:
-    """``{seed: Err_R}`` of the keys matching ``pattern`` with ``{seed}`` in it."""
-    found = {}
-    for key, value in scores.items():
-        match = re.fullmatch(pattern.replace("{seed}", r"(\d+)"), key)
-        if match:
-            found[int(match.group(1))] = value["model"]
-    return dict(sorted(found.items()))
-
-
-def _per_seed(values: Mapping[int, float]) -> str:
-    """``mean (a, b, c)`` over seeds, or empty."""
-    if not values:
-        return ""
-    listed = ", ".join(f"{v:.2f}" for v in values.values())
-    return f"{np.mean(list(values.values())):.2f} ({listed})" if len(values) > 1 else listed
-
-
-def unseen_body_table(scores: Mapping[str, Mapping[str, float]]) -> str:
-    """Leave one body out: a row per cell, a column per held-out body (mean over seeds, per seed)."""
-    cells = sorted({key.split("/")[2].rsplit("_s", 1)[0] for key in scores if key.startswith("unseen_body/")})
-    if not cells:
-        return ""
-    lines = ["### Human, leave one body out", "", "| cell | " + " | ".join(BODIES) + " | mean over bodies |"]
-    lines.append("|---|" + "---:|" * (len(BODIES) + 1))
-    for cell in cells:
-        per_body = [_seeds_of(scores, rf"unseen_body/{body}/{cell}_s{{seed}}/test") for body in BODIES]
-        seeds = sorted(set.intersection(*(set(values) for values in per_body)))
-        means = {seed: float(np.mean([values[seed] for values in per_body])) for seed in seeds}
-        lines.append(f"| {cell} | " + " | ".join(_per_seed(v) for v in per_body) + f" | {_per_seed(means)} |")
-    keys = [[k for k in scores if k.startswith(f"unseen_body/{body}/")] for body in BODIES]
-    lines += _reference_rows(scores, [*keys, []])
-    return "\n".join([*lines, ""])
-
-
-def _leaf(column: str, dataset: str, *, shipped: bool) -> str:
-    """The cache key's last part of a column of :func:`mixed_table`."""
-    if column.startswith("val"):
-        return f"val_{dataset}"
-    return "test" if shipped and column == IN_PROTOCOL else dataset
-
-
-def mixed_table(scores: Mapping[str, Mapping[str, float]]) -> str:
-    """Airplane, view-vs-view training (the shipped networks) against both pair types (the runs):
-    validation columns first (the choice), then the test splits."""
-    cells = sorted({key.split("/")[1].rsplit("_s", 1)[0] for key in scores if key.startswith("mixed_pairs/")})
-    if not cells:
-        return ""
-    columns = [*VALIDATION, *MIXED_SPLITS]
-    header = "| training pairs | cell | " + " | ".join(column for column, _ in columns) + " |"
-    lines = ["### Airplane, both pair types in training", "", header, "|---|---|" + "---:|" * len(columns)]
-    for cell in cells:
-        view = [scores.get(f"{cell}_airplane/{_leaf(c, d, shipped=True)}", {}).get("model") for c, d in columns]
-        mixed = [_seeds_of(scores, rf"mixed_pairs/{cell}_s{{seed}}/{_leaf(c, d, shipped=False)}") for c, d in columns]
-        lines.append(f"| view vs view (seed 0) | {cell} | {_cells(view)} |")
-        lines.append(f"| both | {cell} | " + " | ".join(_per_seed(values) for values in mixed) + " |")
-    keys = [[k for k in scores if k.endswith("/" + _leaf(c, d, shipped=False))] for c, d in columns]
-    lines += [line.replace("| ", "| | ", 1) for line in _reference_rows(scores, keys)]
-    return "\n".join([*lines, ""])
-
-
-def choice_table(scores: Mapping[str, Mapping[str, float]]) -> str:
-    """Human's line-loss settings: validation (the choice) and test Err_R per setting."""
-    rows = ["rpm_ours_human", *sorted({k.rsplit("/", 1)[0] for k in scores if k.startswith("human_choice/")})]
-    if len(rows) == 1:
-        return ""
-    lines = ["### Human, the line loss's settings", "", "| settings | validation | test |", "|---|---:|---:|"]
-    for row in rows:
-        match = re.search(r"nu(?P<nu>[\d.]+)_lines(?P<lines>\d+)_s(?P<seed>\d+)", row)
-        label = (
-            f"ν0 = {match['nu']}, {int(match['lines'])} lines, seed {match['seed']}" if match else f"`{row}` (seed 0)"
-        )
-        lines.append(
-            f"| {label} | {_cells([scores.get(f'{row}/{split}', {}).get('model') for split in ('val', 'test')])} |"
-        )
-    return "\n".join([*lines, ""])
-
-
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--out", type=Path, required=True, help="folder of the cached scores and table.md")
@@ -544,18 +291,9 @@ def main(argv: list[str] | None = None) -> int:
         jobs += seed_jobs(args.runs) + choice_jobs(args.runs)
     jobs += object_jobs(args.runs)
     if args.runs is not None:
-        jobs += real_choice_jobs(args.runs) + stretch_jobs(args.runs)
+        jobs += schedule_jobs(args.runs) + stretch_jobs(args.runs)
     scores = run_all(jobs, args.out, args.register)
-    tables = (
-        shipped_table,
-        unseen_body_table,
-        mixed_table,
-        choice_table,
-        real_choice_table,
-        stretch_table,
-        objects_table,
-    )
-    text = "\n".join(part for part in (table(scores) for table in tables) if part)
+    text = "\n".join(part for part in (table(scores) for table in TABLES) if part)
     (args.out / "table.md").write_text(text)
     print(text)
     return 0

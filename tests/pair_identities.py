@@ -6,8 +6,8 @@ from typing import Any
 
 
 def pair_identities(dataset: Any) -> set[tuple[str, Any]]:
-    """``(shape file, view)`` or ``(source frame file, target frame)`` of every pair of a split (of
-    every part of a concat)."""
+    """``(shape file, view)``, ``(source frame file, target frame)`` or ``(source fragment file,
+    target fragment)`` of every pair of a split (of every part of a concat)."""
     from linereg.datasets.splits import SubsetPairs
 
     indices = range(len(dataset))
@@ -21,6 +21,8 @@ def pair_identities(dataset: Any) -> set[tuple[str, Any]]:
             found |= pair_identities(SubsetPairs(part, kept)) if kept else set()
             start = end
         return found
+    if hasattr(dataset, "entries"):  # 3DMatch fragments
+        return {(str(dataset._fragment(dataset.entries[i].j)), dataset.entries[i].i) for i in indices}
     if hasattr(dataset, "pairs"):  # an RGB-D sequence
         return {(str(dataset.pairs[i][0].depth), dataset.pairs[i][1].number) for i in indices}
     return {

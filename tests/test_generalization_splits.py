@@ -23,6 +23,7 @@ SPLITS = {  # split -> its protocol
     "human_view_vs_view": "human",
     "human_armadillo": "human",
     "kinect_frames": "real",
+    "redkitchen_fragments": "real",
 }
 BODIES = ("human_man", "human_neutral", "human_woman")
 pytestmark = pytest.mark.shared_data

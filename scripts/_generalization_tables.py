@@ -112,17 +112,14 @@ def schedule_tables(scores: Mapping[str, Mapping[str, float]]) -> str:
     """Each curriculum choice: validation (the choice) and test Err_R per schedule and loss, over seeds."""
     tables = []
     for step, choice in SCHEDULE_CHOICES.items():
-        if not any(key.startswith(f"{step}/alternative/") for key in scores):
+        alternative = choice.suffix.lstrip("_")
+        if not any(key.startswith(f"{step}/{alternative}/") for key in scores):
             continue
         cells = [f"{choice.backbone}_{loss}" for loss in ("cd", "ours")]
-        header = (
-            "| schedule | " + " | ".join(f"`{c}` {split}" for c in cells for split in ("validation", "test")) + " |"
-        )
-        lines = [f"### {choice.title}", "", header, "|---|---:|---:|---:|---:|"]
-        for schedule, suffix, label in (
-            ("recipe", "", choice.labels[0]),
-            ("alternative", choice.suffix, choice.labels[1]),
-        ):
+        header = " | ".join(f"`{cell}` {split}" for cell in cells for split in ("validation", "test"))
+        lines = [f"### {choice.title}", "", f"| schedule | {header} |", "|---|---:|---:|---:|---:|"]
+        schedules = (("recipe", "", f"{choice.labels[0]} (the recipe)"), (alternative, choice.suffix, choice.labels[1]))
+        for schedule, suffix, label in schedules:
             row = [
                 _per_seed(_seeds_of(scores, rf"{step}/{schedule}/{cell}{suffix}_s{{seed}}/{split}"))
                 for cell in cells

@@ -146,3 +146,18 @@ def test_the_protocol_tables_count_where_the_line_loss_holds_per_backbone():
     assert verdict.format(1, 2, 1) in table.split("### human")[1].split("### real")[0]
     assert verdict.format(2, 2, 2) in table.split("### real")[1]
     assert "rpm_ours` <=" not in table  # no RPM-Net scores, no verdict
+
+
+def test_each_schedule_choice_sets_the_recipe_beside_its_alternative_on_validation_and_test():
+    from scripts import _generalization_tables as tables
+
+    found = {}
+    for loss, (recipe, alternative) in {"cd": (2.0, 3.0), "ours": (1.0, 4.0)}.items():
+        for split in ("val", "test"):
+            found[f"dcp_choice/recipe/dcp_{loss}_s0/{split}"] = {"model": recipe}
+            found[f"dcp_choice/easy_only/dcp_{loss}_easy_only_s0/{split}"] = {"model": alternative}
+    table = tables.schedule_tables(found)
+    assert "### Airplane, DCP's full-range stage" in table and "### Real" not in table
+    assert "| schedule | `dcp_cd` validation | `dcp_cd` test | `dcp_ours` validation | `dcp_ours` test |" in table
+    assert "| easy, then full (the recipe) | 2.00 | 2.00 | 1.00 | 1.00 |" in table
+    assert "| easy | 3.00 | 3.00 | 4.00 | 4.00 |" in table

@@ -64,7 +64,8 @@ class ScheduleChoice:
     backbone: str
     suffix: str
     labels: tuple[str, str]  # (the recipe's schedule, the alternative); the table marks the recipe
-    val_pairs: int | None = None
+    val_pairs: int | None = None  # a subset of the validation pairs of ``val_dataset``
+    val_dataset: str | None = None  # None: the checkpoint's own dataset
 
 
 SCHEDULE_CHOICES = {
@@ -76,6 +77,7 @@ SCHEDULE_CHOICES = {
         "_easy_only",
         ("easy, then full", "easy"),
         VALIDATION_PAIRS,
+        "airplane_views",
     ),
 }
 

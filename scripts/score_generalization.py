@@ -215,9 +215,9 @@ def schedule_jobs(runs: Path) -> list[Job]:
         rows.update({f"{alternative}/{Path(n).name}": str(f) for n, f in run_folders(runs, step).items()})
         for row, checkpoint in rows.items():
             for split in ("val", "test"):
-                subset = choice.val_pairs if split == "val" else None
-                key = f"{choice.protocol}_{split}" + (f"_{subset}" if subset else "")
-                jobs.append(Job(f"{step}/{row}/{split}", checkpoint, None, split, key, subset))
+                dataset, subset = (choice.val_dataset, choice.val_pairs) if split == "val" else (None, None)
+                key = f"{choice.protocol}_{split}" + (f"_{dataset}" if dataset else "")
+                jobs.append(Job(f"{step}/{row}/{split}", checkpoint, dataset, split, key, subset))
     return jobs
 
 

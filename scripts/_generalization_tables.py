@@ -67,6 +67,11 @@ class ScheduleChoice:
     val_pairs: int | None = None  # a subset of the validation pairs of ``val_dataset``
     val_dataset: str | None = None  # None: the checkpoint's own dataset
 
+    @property
+    def alternative(self) -> str:
+        """The alternative schedule's row folder (the run-name suffix without its underscore)."""
+        return self.suffix.lstrip("_")
+
 
 SCHEDULE_CHOICES = {
     "real_choice": ScheduleChoice("Real, easier pairs first", "real", "rpm", "_test_gap", ("gap 6, then 20", "gap 20")),
@@ -114,13 +119,15 @@ def schedule_tables(scores: Mapping[str, Mapping[str, float]]) -> str:
     """Each curriculum choice: validation (the choice) and test Err_R per schedule and loss, over seeds."""
     tables = []
     for step, choice in SCHEDULE_CHOICES.items():
-        alternative = choice.suffix.lstrip("_")
-        if not any(key.startswith(f"{step}/{alternative}/") for key in scores):
+        if not any(key.startswith(f"{step}/{choice.alternative}/") for key in scores):
             continue
         cells = [f"{choice.backbone}_{loss}" for loss in ("cd", "ours")]
         header = " | ".join(f"`{cell}` {split}" for cell in cells for split in ("validation", "test"))
         lines = [f"### {choice.title}", "", f"| schedule | {header} |", "|---|---:|---:|---:|---:|"]
-        schedules = (("recipe", "", f"{choice.labels[0]} (the recipe)"), (alternative, choice.suffix, choice.labels[1]))
+        schedules = (
+            ("recipe", "", f"{choice.labels[0]} (the recipe)"),
+            (choice.alternative, choice.suffix, choice.labels[1]),
+        )
         for schedule, suffix, label in schedules:
             row = [
                 _per_seed(_seeds_of(scores, rf"{step}/{schedule}/{cell}{suffix}_s{{seed}}/{split}"))
@@ -151,7 +158,7 @@ def objects_table(scores: Mapping[str, Mapping[str, float]]) -> str:
         for _, _, dataset in OBJECT_SPLITS:
             seeds = _seeds_of(scores, rf"general/objects/{cell}_s{{seed}}/{dataset}")
             shipped = scores.get(f"general/{GENERAL}/{dataset}", {}).get("model") if cell == "rpm_ours" else None
-            per_seed.append(dict(sorted((({0: shipped} if shipped is not None else {}) | seeds).items())))
+            per_seed.append(_with_shipped(shipped, seeds))
         general[cell] = [float(np.mean(list(values.values()))) if values else None for values in per_seed]
         lines.append(f"| `{cell}_objects` | " + " | ".join(_per_seed(values) for values in per_seed) + " |")
     for protocol in SPLITS:
@@ -200,7 +207,12 @@ def _cell_seeds(scores: Mapping[str, Mapping[str, float]], protocol: str, cell: 
     runs, and for RPM-Net the shipped network as seed 0."""
     seeds = _seeds_of(scores, rf"recipe/{protocol}/{cell}_s{{seed}}/{pairs}")
     shipped = scores.get(f"{cell}_{protocol}/{pairs}", {}).get("model")
-    return dict(sorted((({0: shipped} if shipped is not None else {}) | seeds).items()))
+    return _with_shipped(shipped, seeds)
+
+
+def _with_shipped(shipped: float | None, seeds: Mapping[int, float]) -> dict[int, float]:
+    """``{seed: Err_R}`` of the runs, with a shipped network's score (when there is one) as seed 0."""
+    return dict(sorted((({0: shipped} if shipped is not None else {}) | dict(seeds)).items()))
 
 
 def shipped_table(scores: Mapping[str, Mapping[str, float]]) -> str:

@@ -211,8 +211,7 @@ def schedule_jobs(runs: Path) -> list[Job]:
     jobs = []
     for step, choice in SCHEDULE_CHOICES.items():
         rows = _recipe_rows(runs, choice.protocol, choice.backbone)
-        alternative = choice.suffix.lstrip("_")
-        rows.update({f"{alternative}/{Path(n).name}": str(f) for n, f in run_folders(runs, step).items()})
+        rows.update({f"{choice.alternative}/{Path(n).name}": str(f) for n, f in run_folders(runs, step).items()})
         for row, checkpoint in rows.items():
             for split in ("val", "test"):
                 dataset, subset = (choice.val_dataset, choice.val_pairs) if split == "val" else (None, None)

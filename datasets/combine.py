@@ -11,6 +11,10 @@ variants reach parts that split themselves::
      variants: {easy: {common: {protocol: {max_angle_deg: 15}}}}}
 
 Each part then takes its own train split (its shapes, its views) and the concat keeps all of them.
+A part of another kind may carry its own ``splits`` and ``variants`` instead (depth frames split in
+time): :func:`linereg.datasets.splits.dataset_config` gives it its own entry, not ``common``.
+``datasets`` may also be a mapping of named parts (kept in order), so that a config can add a part
+to another's (``defaults: [objects, _self_]`` and ``datasets: {rooms: {...}}``).
 """
 
 from __future__ import annotations
@@ -92,16 +96,18 @@ class ConcatPairs(PairDataset):
 @DATASETS.register("concat")
 def build_concat(
     *,
-    datasets: Sequence[Mapping[str, Any]],
+    datasets: Sequence[Mapping[str, Any]] | Mapping[str, Mapping[str, Any]],
     split: str = "all",
     train_fraction: float = 0.8,
     split_seed: int = 0,
     common: Mapping[str, Any] | None = None,
 ) -> ConcatPairs:
     """Concatenate dataset configs (each ``{name: ..., **kwargs}``, with ``common`` merged into
-    each) and take a split."""
+    each; a mapping: named parts, in order) and take a split."""
     from linereg.datasets import build_dataset
 
+    if isinstance(datasets, Mapping):
+        datasets = list(datasets.values())
     if common is not None and not isinstance(common, Mapping):
         raise TypeError(f"concat's common must be a mapping of keys for every part, got {type(common).__name__}")
     merged = [OmegaConf.to_container(OmegaConf.merge(config, common or {})) for config in datasets]

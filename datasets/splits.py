@@ -101,7 +101,27 @@ def dataset_config(config: Mapping[str, Any], split: str, variant: str | None = 
         )
     base = {key: value for key, value in config.items() if key not in ("splits", "variants")}
     layers = [base, splits.get(split) or {}, variants.get(variant) or {}]
-    return OmegaConf.to_container(OmegaConf.merge(*layers), resolve=True)
+    merged = OmegaConf.to_container(OmegaConf.merge(*layers), resolve=True)
+    return _split_parts(merged, split, variant) if merged.get("name") == "concat" else merged
+
+
+def _split_parts(config: dict[str, Any], split: str, variant: str | None) -> dict[str, Any]:
+    """A concat's parts for one split: a part with its own ``splits`` (a dataset config of another
+    kind, e.g. depth frames split in time) takes its own entry for ``split`` and ``variant`` and is
+    left out where that entry is ``null``; the other parts get the concat's ``common`` keys."""
+    parts = config.get("datasets")
+    if isinstance(parts, Mapping):  # named parts, in order
+        parts = list(parts.values())
+    if not isinstance(parts, list) or not any(isinstance(part, Mapping) and "splits" in part for part in parts):
+        return config
+    common = config.pop("common", None) or {}
+    resolved = []
+    for part in parts:
+        if "splits" not in part:
+            resolved.append(OmegaConf.to_container(OmegaConf.merge(part, common)))
+        elif (own := dataset_config(part, split, variant)) is not None:
+            resolved.append({key: value for key, value in own.items() if key not in CACHE_KEYS})  # the concat caches
+    return {**config, "datasets": resolved}
 
 
 def build_split(

@@ -8,7 +8,8 @@ the command that trained it and its test error. A name goes wherever a checkpoin
     linereg.register(a, b, method="rpm_ours_airplane", refine=True)
 
 Names are ``<experiment>_<protocol>``; ``rpm_ours_objects`` is the general model, trained on every
-object of the shared data with both pair types (``configs/dataset/objects.yaml``). Each file is a
+object of the shared data with both pair types and on the Real protocol's room frames
+(``configs/dataset/objects_and_rooms.yaml``). Each file is a
 linereg checkpoint (:mod:`linereg.checkpoint`) holding the model weights and the run's resolved
 config only, with its data paths portable
 (:func:`portable_config`): ``${shared_data}`` stands for the shared data folder
@@ -62,7 +63,8 @@ _HUMAN = "a partial view against the whole body of 3 SMPL/SMPL-X bodies (Human p
 _REAL = "7-Scenes depth frames 20 apart, frames 0-399 (Real protocol)"
 _OBJECTS = (
     "every object of the shared data: ModelNet40 airplanes and 7 other classes, 3 SMPL/SMPL-X bodies, a bunny "
-    "and a plane mesh, partial views against a second view or the whole shape"
+    "and a plane mesh, partial views against a second view or the whole shape; and the Real protocol's "
+    "7-Scenes depth frames 0-399"
 )
 _ENTRIES = (
     _cell("rpm_gt", "airplane", f"RPM-Net, supervised (ground-truth poses), on {_AIRPLANE}", 1.995),
@@ -77,8 +79,9 @@ _ENTRIES = (
     Pretrained(
         "rpm_ours_objects",
         f"RPM-Net, line-intersection loss, no labels, on {_OBJECTS}",
-        "linereg-train experiment=rpm_ours protocol=airplane dataset=objects task_name=rpm_ours_objects seed=0",
-        5.749,
+        "linereg-train experiment=rpm_ours protocol=airplane dataset=objects_and_rooms task_name=rpm_ours_objects "
+        "seed=0",
+        5.872,
     ),
 )
 REGISTRY: dict[str, Pretrained] = {entry.name: entry for entry in _ENTRIES}

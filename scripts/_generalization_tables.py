@@ -50,6 +50,19 @@ OBJECT_SPLITS: list[tuple[str, str, str]] = [  # (protocol, column, dataset conf
     ("real", "3DMatch redkitchen fragments", "redkitchen_fragments"),
 ]
 GENERAL = "rpm_ours_objects"
+# The general model's training data: the ``reproduce_generalization.sh`` step (its dataset config)
+# -> what it holds; the shipped ``rpm_ours_objects`` is seed 0 of GENERAL_SHIPPED's ``rpm_ours``.
+GENERAL_DATA = {
+    "objects": "every object",
+    "objects_and_rooms": "every object and the room frames (6 frames apart)",
+    "objects_and_rooms_gap20": "every object and the room frames (20 frames apart)",
+}
+GENERAL_SHIPPED = "objects_and_rooms"
+# The general models' validation pairs (the choice of their training data): (column, dataset config).
+GENERAL_VALIDATION = [
+    ("val: every object and the room frames", "objects_and_rooms"),
+    ("val: Real frames", "sevenscenes_frames"),
+]
 # The Human runs on the validation pairs of their choice: fresh poses of every training pair.
 HUMAN_VALIDATION_PAIRS = 120
 
@@ -143,24 +156,29 @@ PROTOCOL_DATA = ("airplane_views", "human_bodies", "sevenscenes_frames")  # each
 
 
 def objects_table(scores: Mapping[str, Mapping[str, float]]) -> str:
-    """Every network on every protocol's splits: the general model's rows (mean over seeds, per seed)
-    above the protocol networks (seed 0; ``*``: its own protocol's test pairs), then how often the
-    general model's mean is at most each protocol's RPM-CD on the splits that protocol never trained
+    """Every network on every protocol's splits: the general models' rows (per training data of
+    :data:`GENERAL_DATA`, mean over seeds, per seed) above the protocol networks (seed 0; ``*``: its
+    own protocol's test pairs); then, per training data, how often the line loss's mean is at most
+    its Chamfer twin's, and at most each protocol's RPM-CD on the splits that protocol never trained
     on (every column but its own test pairs)."""
     keys = [key for key in scores if key.startswith("general/")]
     if not keys:
         return ""
-    header = "| network | " + " | ".join(column for _, column, _ in OBJECT_SPLITS) + " |"
-    lines = ["### Every object in one network", "", header, "|---|" + "---:|" * len(OBJECT_SPLITS)]
+    header = "| network | trained on | " + " | ".join(column for _, column, _ in OBJECT_SPLITS) + " |"
+    lines = ["### Every object in one network", "", header, "|---|---|" + "---:|" * len(OBJECT_SPLITS)]
     general = {}
-    for cell in sorted({key.split("/")[2].rsplit("_s", 1)[0] for key in keys if key.startswith("general/objects/")}):
-        per_seed = []
-        for _, _, dataset in OBJECT_SPLITS:
-            seeds = _seeds_of(scores, rf"general/objects/{cell}_s{{seed}}/{dataset}")
-            shipped = scores.get(f"general/{GENERAL}/{dataset}", {}).get("model") if cell == "rpm_ours" else None
-            per_seed.append(_with_shipped(shipped, seeds))
-        general[cell] = [float(np.mean(list(values.values()))) if values else None for values in per_seed]
-        lines.append(f"| `{cell}_objects` | " + " | ".join(_per_seed(values) for values in per_seed) + " |")
+    for step, data in GENERAL_DATA.items():
+        cells = {key.split("/")[2].rsplit("_s", 1)[0] for key in keys if key.startswith(f"general/{step}/")}
+        for cell in sorted(cells):
+            per_seed = []
+            for _, _, dataset in OBJECT_SPLITS:
+                seeds = _seeds_of(scores, rf"general/{step}/{cell}_s{{seed}}/{dataset}")
+                shipped = scores.get(f"general/{GENERAL}/{dataset}", {}).get("model")
+                is_shipped = (step, cell) == (GENERAL_SHIPPED, "rpm_ours")
+                per_seed.append(_with_shipped(shipped if is_shipped else None, seeds))
+            general[step, cell] = [float(np.mean(list(values.values()))) if values else None for values in per_seed]
+            cells = " | ".join(_per_seed(values) for values in per_seed)
+            lines.append(f"| `{cell}_objects` | {data} | {cells} |")
     for protocol in SPLITS:
         for loss in LOSSES:
             name = f"rpm_{loss}_{protocol}"
@@ -169,11 +187,55 @@ def objects_table(scores: Mapping[str, Mapping[str, float]]) -> str:
                 for own, _, dataset in OBJECT_SPLITS
             ]
             text = ["" if v is None else f"{v:.2f}" + ("*" if mine else "") for v, mine in cells]
-            lines.append(f"| `{name}` | " + " | ".join(text) + " |")
+            lines.append(f"| `{name}` | its protocol | " + " | ".join(text) + " |")
     columns = [[k for k in keys if k.endswith("/" + dataset)] for _, _, dataset in OBJECT_SPLITS]
-    lines += [*_reference_rows(scores, columns), ""]
-    ours = general.get("rpm_ours", [])
-    for protocol in SPLITS if ours else ():
+    lines += [*(row.replace(" | ", " |  | ", 1) for row in _reference_rows(scores, columns)), ""]
+    for step, data in GENERAL_DATA.items():
+        lines += _general_verdicts(scores, data, general.get((step, "rpm_ours")), general.get((step, "rpm_cd")))
+    return "\n".join([*lines, ""])
+
+
+def general_choice_table(scores: Mapping[str, Mapping[str, float]]) -> str:
+    """The general models' training data, chosen on validation pairs: a row per data and loss, a
+    column per :data:`GENERAL_VALIDATION` set (mean over seeds, per seed)."""
+    if not any(key.startswith("general_val/") for key in scores):
+        return ""
+    columns = [column for column, _ in GENERAL_VALIDATION]
+    lines = [
+        "### Every object in one network, the training data",
+        "",
+        "| trained on | cell | " + " | ".join(columns) + " |",
+    ]
+    lines.append("|---|---|" + "---:|" * len(columns))
+    for step, data in GENERAL_DATA.items():
+        for loss in ("cd", "ours"):
+            row = [
+                _per_seed(_seeds_of(scores, rf"general_val/{step}/rpm_{loss}_s{{seed}}/{dataset}"))
+                for _, dataset in GENERAL_VALIDATION
+            ]
+            if any(row):
+                lines.append(f"| {data} | `rpm_{loss}` | " + " | ".join(row) + " |")
+    keys = [
+        [k for k in scores if k.startswith("general_val/") and k.endswith("/" + dataset)]
+        for _, dataset in GENERAL_VALIDATION
+    ]
+    lines += [row.replace(" | ", " |  | ", 1) for row in _reference_rows(scores, keys)]
+    return "\n".join([*lines, ""])
+
+
+def _general_verdicts(
+    scores: Mapping[str, Mapping[str, float]], data: str, ours: list | None, twin: list | None
+) -> list[str]:
+    """A general model's verdict lines: against its Chamfer twin on every split, against each
+    protocol's RPM-CD on the splits that protocol never trained on (means)."""
+    if not ours:
+        return []
+    lines = []
+    if twin:
+        pairs = [(mine, theirs) for mine, theirs in zip(ours, twin, strict=True) if None not in (mine, theirs)]
+        wins = sum(mine <= theirs for mine, theirs in pairs)
+        lines.append(f"- on {data}: `rpm_ours` (mean) <= `rpm_cd` on the same data on {wins} of {len(pairs)} splits")
+    for protocol in SPLITS:
         rival = [scores.get(f"general/rpm_cd_{protocol}/{dataset}", {}).get("model") for _, _, dataset in OBJECT_SPLITS]
         outside = [
             (mine, theirs)
@@ -182,9 +244,10 @@ def objects_table(scores: Mapping[str, Mapping[str, float]]) -> str:
         ]
         wins = sum(mine <= theirs for mine, theirs in outside)
         lines.append(
-            f"- `{GENERAL}` (mean) <= `rpm_cd_{protocol}` on {wins} of {len(outside)} splits it never trained on"
+            f"- on {data}: `rpm_ours` (mean) <= `rpm_cd_{protocol}` on {wins} of {len(outside)} splits "
+            f"{protocol.capitalize()} never trained on"
         )
-    return "\n".join([*lines, ""])
+    return lines
 
 
 def _cells(values: list[float | None]) -> str:
@@ -334,4 +397,13 @@ def choice_table(scores: Mapping[str, Mapping[str, float]]) -> str:
     return "\n".join([*lines, ""])
 
 
-TABLES = (shipped_table, unseen_body_table, mixed_table, choice_table, schedule_tables, stretch_table, objects_table)
+TABLES = (
+    shipped_table,
+    unseen_body_table,
+    mixed_table,
+    choice_table,
+    schedule_tables,
+    stretch_table,
+    objects_table,
+    general_choice_table,
+)

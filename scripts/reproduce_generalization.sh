@@ -15,6 +15,9 @@
 #   objects      the general model: RPM-Net on every object of the shared data, both pair types
 #                (configs/dataset/objects.yaml), with the line loss and with Chamfer (rpm_cd and
 #                rpm_ours of CELLS);
+#   rooms        the general model with the Real protocol's room frames too
+#                (configs/dataset/objects_and_rooms.yaml: easy pairs 6 frames apart), and with
+#                the rooms at the test pairs' 20 frames throughout (rpm_cd and rpm_ours of CELLS);
 #   real_choice  Real without its easier pairs first: every stage at the test pairs' gap of 20
 #                frames (the recipe's curriculum, re-chosen on validation pairs; rpm_cd, rpm_ours);
 #   dcp_choice   DCP on Airplane without its full-range stage: 4 epochs of easy poses only (the recipe's
@@ -36,7 +39,7 @@ PY=${PYTHON:-.venv/bin/python}
 OUT=${OUT:-outputs/generalization_runs}
 SEEDS=${SEEDS:-0 1 2}
 CELLS=${CELLS:-rpm_gt rpm_cd rpm_ours}
-STEPS=${STEPS:-unseen_body mixed_pairs human_choice objects real_choice dcp_choice human_stretch seeds}
+STEPS=${STEPS:-unseen_body mixed_pairs human_choice objects rooms real_choice dcp_choice human_stretch seeds}
 PROTOCOL_SEEDS=${PROTOCOL_SEEDS:-1 2}
 PROTOCOLS=${PROTOCOLS:-airplane human real}
 BODIES="human_man human_neutral human_woman"
@@ -68,6 +71,10 @@ runs() {
         objects)
           [[ $cell == rpm_gt ]] && continue
           echo "$OUT/objects/${cell}_s$seed experiment=$cell protocol=airplane dataset=objects task_name=${cell}_objects seed=$seed" ;;
+        rooms)
+          [[ $cell == rpm_gt ]] && continue
+          echo "$OUT/objects_and_rooms/${cell}_s$seed experiment=$cell protocol=airplane dataset=objects_and_rooms task_name=${cell}_objects seed=$seed"
+          echo "$OUT/objects_and_rooms_gap20/${cell}_s$seed experiment=$cell protocol=airplane dataset=objects_and_rooms task_name=${cell}_objects dataset.datasets.rooms.variants.easy.frame_gap=20 seed=$seed" ;;
         real_choice)
           [[ $cell == rpm_gt ]] && continue
           echo "$OUT/real_choice/${cell}_test_gap_s$seed experiment=$cell protocol=real curriculum.stages.easy.variant=null seed=$seed" ;;
@@ -83,7 +90,7 @@ runs() {
             read -r nu lines <<< "$setting"
             echo "$OUT/human_choice/rpm_ours_nu${nu}_lines${lines}_s$seed experiment=rpm_ours protocol=human loss.nu0=$nu loss.num_lines=$lines seed=$seed"
           done ;;
-        *) echo "reproduce_generalization.sh: error: unknown step '$step' (unseen_body, mixed_pairs, human_choice, objects, real_choice, dcp_choice, human_stretch, seeds)" >&2; return 2 ;;
+        *) echo "reproduce_generalization.sh: error: unknown step '$step' (unseen_body, mixed_pairs, human_choice, objects, rooms, real_choice, dcp_choice, human_stretch, seeds)" >&2; return 2 ;;
       esac
     done
   done

@@ -20,9 +20,10 @@ split of :data:`SPLITS` (a dataset config of ``configs/dataset/``). With ``--run
   validation pairs (the choice) and test pairs (:data:`SCHEDULE_CHOICES`);
 * ``human_stretch/<cell>_stretch0.2_s<seed>``: the Human cells trained on stretched pairs, beside
   the recipe's, on Human's validation pairs (the choice), test pairs and other splits;
-* ``objects/<cell>_s<seed>``: networks trained on every object (``dataset=objects``), with the
-  shipped general model ``rpm_ours_objects`` (seed 0) and every shipped protocol network, on every
-  split of every protocol (:data:`OBJECT_SPLITS`).
+* ``objects/<cell>_s<seed>``, ``objects_and_rooms/<cell>_s<seed>``: networks trained on every
+  object (``dataset=objects``), and on the room frames too (``dataset=objects_and_rooms``), with
+  the shipped general model ``rpm_ours_objects`` (seed 0 of :data:`GENERAL_SHIPPED`) and every
+  shipped protocol network, on every split of every protocol (:data:`OBJECT_SPLITS`).
 
 Every table gives the identity's error on the same pairs and, with ``--register``, that of
 ``linereg.register`` (the default solver, no network). Each score is cached in
@@ -54,6 +55,8 @@ if str(REPO_ROOT) not in sys.path:
 
 from scripts._generalization_tables import (  # noqa: E402
     GENERAL,
+    GENERAL_DATA,
+    GENERAL_VALIDATION,
     HUMAN_VALIDATION_PAIRS,
     IN_PROTOCOL,
     LOSSES,
@@ -245,18 +248,29 @@ def _pairs_key(protocol: str, dataset: str) -> str:
 
 
 def object_jobs(runs: Path | None) -> list[Job]:
-    """The general model, the ``objects`` runs and every shipped protocol network on every split."""
+    """The general model, the runs of :data:`GENERAL_DATA` and every shipped protocol network on every split."""
     from linereg import pretrained
 
     rows = {f"rpm_{loss}_{protocol}": f"rpm_{loss}_{protocol}" for protocol in SPLITS for loss in LOSSES}
     if pretrained.is_name(GENERAL):
         rows[GENERAL] = GENERAL
     if runs is not None:
-        rows.update({name: str(folder) for name, folder in run_folders(runs, "objects").items()})
+        for step in GENERAL_DATA:
+            rows.update({name: str(folder) for name, folder in run_folders(runs, step).items()})
     return [
         Job(f"general/{row}/{dataset}", checkpoint, dataset, "test", _pairs_key(protocol, dataset))
         for row, checkpoint in rows.items()
         for protocol, _, dataset in OBJECT_SPLITS
+    ]
+
+
+def general_validation_jobs(runs: Path) -> list[Job]:
+    """The runs of :data:`GENERAL_DATA` on the validation pairs of :data:`GENERAL_VALIDATION`."""
+    return [
+        Job(f"general_val/{name}/{dataset}", str(folder), dataset, "val", f"general_val_{dataset}")
+        for step in GENERAL_DATA
+        for name, folder in run_folders(runs, step).items()
+        for _, dataset in GENERAL_VALIDATION
     ]
 
 
@@ -290,7 +304,7 @@ def main(argv: list[str] | None = None) -> int:
         jobs += seed_jobs(args.runs) + choice_jobs(args.runs)
     jobs += object_jobs(args.runs)
     if args.runs is not None:
-        jobs += schedule_jobs(args.runs) + stretch_jobs(args.runs)
+        jobs += schedule_jobs(args.runs) + stretch_jobs(args.runs) + general_validation_jobs(args.runs)
     scores = run_all(jobs, args.out, args.register)
     text = "\n".join(part for part in (table(scores) for table in TABLES) if part)
     (args.out / "table.md").write_text(text)

@@ -7,6 +7,7 @@ import pytest
 import trimesh
 
 from linereg.datasets import build_dataset
+from linereg.datasets.splits import dataset_config
 from scripts import prepare_dataset
 
 SMALL = {"name": "procedural", "num_shapes": 1, "protocol": {"name": "airplane", "num_views": 5, "num_points": 64}}
@@ -46,6 +47,32 @@ def test_concat_common_keys_reach_every_part_and_let_each_split_itself(tmp_path)
     assert {p.shapes.items[0][0] for p in test.parts} == {"a", "b"} and len(test) == 2 * 2 * 2
     with pytest.raises(TypeError, match="common must be a mapping"):
         build_dataset({"name": "concat", "datasets": parts, "common": "train"})
+
+
+def test_a_concat_part_with_its_own_splits_takes_them_instead_of_common():
+    """Named parts in order; the part that splits itself (as depth frames split in time) takes its
+    own entry and variant, never the concat's ``common``, and is left out where its entry is null."""
+    own = {
+        **SMALL,
+        "splits": {"train": {"num_shapes": 2}, "val": None, "test": {"split": "test"}},
+        "variants": {"easy": {"protocol": {"max_angle_deg": 5.0}}},
+    }
+    config = {
+        "name": "concat",
+        "datasets": {"shapes": SMALL, "frames": own},
+        "common": {"seed": 3},
+        "splits": {"train": {"common": {"split": "train"}}, "val": {"common": {"split": "val"}}},
+        "variants": {"easy": {"common": {"protocol": {"max_angle_deg": 15.0}}}},
+    }
+    train = build_dataset(dataset_config(config, "train", "easy"))
+    assert [len(part) for part in train.parts] == [5, 10]
+    assert [part.seed for part in train.parts] == [3, 0]
+    assert [part.protocol.max_angle_deg for part in train.parts] == [15.0, 5.0]
+    assert [part["split"] for part in dataset_config(config, "val")["datasets"]] == ["val"]
+    test = dataset_config(config, "test")["datasets"]
+    assert test[1] == {**SMALL, "split": "test"} and "common" not in dataset_config(config, "test")
+    with pytest.raises(ValueError, match="has no variant 'hard'"):
+        dataset_config({**config, "variants": {"hard": {}}}, "train", "hard")
 
 
 def test_prepare_procedural_writes_a_loadable_cache(tmp_path, capsys):

@@ -105,28 +105,33 @@ def test_the_mixed_airplane_pairs_are_the_protocols_shapes_with_both_targets(sha
     assert {mixed.protocol.target_of(view) for _, view in pair_identities(mixed)} == {"view", "whole"}
 
 
-def _objects(split: str):
-    """``split`` of the general model's data (every object, both pair types), without a cache."""
-    cfg = _compose("train", ["protocol=airplane", "experiment=rpm_ours", "dataset=objects", "dataset.cache_dir=null"])
-    return build_split(plain(cfg.dataset), split, progress=False)
+def _objects(split: str, dataset: str = "objects"):
+    """``split`` of a general model's data (every object, both pair types; ``objects_and_rooms``:
+    and the Real protocol's room frames), without a cache."""
+    overrides = ["protocol=airplane", "experiment=rpm_ours", f"dataset={dataset}", "dataset.cache_dir=null"]
+    return build_split(plain(_compose("train", overrides).dataset), split, progress=False)
 
 
-def test_the_general_model_trains_on_no_pair_it_is_scored_on(shared_data):
-    """Every object of the shared data trains the general model, but no test pair of a split it is
-    scored on, and no shape of the held-out shapes' splits; its test split holds the protocols' test
-    pairs and the held-out shapes."""
-    training, test = pair_identities(_objects("train")), pair_identities(_objects("test"))
-    protocols = {"airplane": _protocol("airplane", "test"), "human": _protocol("human", "test")}
+@pytest.mark.parametrize("dataset", ["objects", "objects_and_rooms"])
+def test_the_general_model_trains_on_no_pair_it_is_scored_on(dataset, shared_data):
+    """Every object of the shared data (and the room frames) trains the general model, but no test
+    pair of a split it is scored on, and no shape or frame of the held-out splits; its test split
+    holds the protocols' test pairs and the held-out shapes."""
+    training, test = pair_identities(_objects("train", dataset)), pair_identities(_objects("test", dataset))
+    protocols = {protocol: _protocol(protocol, "test") for protocol in ("airplane", "human", "real")}
     scored = {**protocols, **{split: _split(split) for split in SPLITS if split != "airplane_other_categories"}}
     for name, split in scored.items():
         assert not pair_identities(split) & training, name
-    shapes = {file for file, _ in training}
-    for name in ("airplane_other_categories_held_out", "human_armadillo"):
-        assert not {file for file, _ in pair_identities(scored[name])} & shapes, name
-    assert {Path(file).parent.name for file in shapes} >= {"airplane", "chair", "human", "bunny", "plane"}
-    for name in ("airplane", "human", "airplane_other_categories_held_out"):
+    files = {file for file, _ in training}
+    for name in ("airplane_other_categories_held_out", "human_armadillo", "real", "kinect_frames"):
+        assert not {file for file, _ in pair_identities(scored[name])} & files, name
+    assert {Path(file).parent.name for file in files} >= {"airplane", "chair", "human", "bunny", "plane"}
+    own = ("airplane", "human", "airplane_other_categories_held_out") + (("real",) if dataset != "objects" else ())
+    for name in own:
         assert pair_identities(scored[name]) <= test, name
-    assert _objects("train").parts[0].protocol.target == "mixed"
+    rooms = {file for file in files if file.endswith(".depth.png")}
+    assert (len(rooms) == 190) == (dataset == "objects_and_rooms"), len(rooms)
+    assert _objects("train", dataset).parts[0].protocol.target == "mixed"
 
 
 TRAINABLE = {  # dataset config -> the protocol it trains under
@@ -134,6 +139,7 @@ TRAINABLE = {  # dataset config -> the protocol it trains under
     "airplane_view_vs_whole": "airplane",
     "airplane_mixed_pairs": "airplane",
     "objects": "airplane",
+    "objects_and_rooms": "airplane",
     "human_bodies": "human",
     "human_view_vs_view": "human",
     "human_unseen_body": "human",

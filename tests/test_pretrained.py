@@ -35,8 +35,10 @@ def test_every_recipe_cell_of_rpm_net_ships_with_its_record():
         record = pretrained.entry(name)
         experiment, protocol = name.rsplit("_", 1)
         assert pretrained.path(name).is_file() and pretrained.path(name).stat().st_size < 4_000_000
-        data = "protocol=airplane dataset=objects task_name=rpm_ours_objects" if protocol == "objects" else None
-        assert record.command == f"linereg-train experiment={experiment} {data or f'protocol={protocol}'} seed=0"
+        data = f"protocol={protocol}"
+        if protocol == "objects":
+            data = "protocol=airplane dataset=objects_and_rooms task_name=rpm_ours_objects"
+        assert record.command == f"linereg-train experiment={experiment} {data} seed=0"
         assert record.description and "\n" not in record.description
         assert math.isfinite(record.test_err_r_deg) and 0 < record.test_err_r_deg < 10
 
@@ -65,7 +67,8 @@ def test_the_general_model_loads_by_name_with_every_part_portable():
     assert type(model).__name__ == "RPMNet" and state["config"]["task_name"] == "rpm_ours_objects"
     stored = torch.load(pretrained.path("rpm_ours_objects"), weights_only=True)
     parts = stored["config"]["dataset"]["datasets"]
-    assert len(parts) == 3 and all(part["root"].startswith("${shared_data}/") for part in parts)
+    assert list(parts) == ["airplanes", "other_classes", "meshes", "rooms"]
+    assert all(part["root"].startswith("${shared_data}/") for part in parts.values())
     assert stored["config"]["dataset"]["common"]["protocol"]["target"] == "mixed"
     assert "/work/" not in json.dumps(stored["config"])
 

@@ -10,6 +10,8 @@ from pathlib import Path
 
 from hydra import compose, initialize_config_dir
 
+from linereg import pretrained
+
 ROOT = Path(__file__).resolve().parent.parent
 SCRIPT = ROOT / "scripts" / "reproduce_generalization.sh"
 BODIES = {"human_man", "human_neutral", "human_woman"}
@@ -37,6 +39,8 @@ def test_every_fold_and_seed_of_every_step_is_a_cell_command_with_a_dataset():
         "mixed_pairs": 2 * 2,
         "human_choice": 3 * 2,  # three settings of RPM-Ours
         "objects": 2 * 2,  # the general model and its Chamfer twin x seeds
+        "objects_and_rooms": 2 * 2,  # the same with the room frames
+        "objects_and_rooms_gap20": 2 * 2,  # and with the rooms at the test pairs' gap throughout
         "real_choice": 2 * 2,  # the Real cells without easier pairs first x seeds
         "dcp_choice": 2 * 2,  # DCP's cd and ours on Airplane without the full-range stage x seeds
         "human_stretch": 2 * 2,  # the Human cells on stretched training pairs x seeds
@@ -61,8 +65,10 @@ def test_every_fold_and_seed_of_every_step_is_a_cell_command_with_a_dataset():
                 args
                 == f"experiment={cell} protocol=human +dataset.splits.train.protocol.anisotropic_scale=0.2 seed={seed}"
             )
-        if step == "objects":
-            assert f"protocol=airplane dataset=objects task_name={cell}_objects " in args
+        if step.startswith("objects"):
+            data = step.removesuffix("_gap20")
+            assert f"protocol=airplane dataset={data} task_name={cell}_objects " in args
+            assert ("dataset.datasets.rooms.variants.easy.frame_gap=20 " in args) == step.endswith("_gap20")
         if step == "human_choice":
             nu, lines = name.removeprefix("rpm_ours_nu").split("_lines")
             assert f"loss.nu0={nu} loss.num_lines={lines} " in args
@@ -75,7 +81,7 @@ def test_every_fold_and_seed_of_every_step_is_a_cell_command_with_a_dataset():
 def test_an_unknown_step_is_one_line_and_exit_code_2():
     result = _dry(STEPS="unseen_body leave_two_out")
     assert result.returncode == 2 and result.stdout == ""
-    steps = "unseen_body, mixed_pairs, human_choice, objects, real_choice, dcp_choice, human_stretch, seeds"
+    steps = "unseen_body, mixed_pairs, human_choice, objects, rooms, real_choice, dcp_choice, human_stretch, seeds"
     assert result.stderr.strip() == f"reproduce_generalization.sh: error: unknown step 'leave_two_out' ({steps})"
 
 
@@ -96,18 +102,30 @@ def test_the_scores_find_linked_runs_and_count_where_the_general_model_wins(tmp_
     }
 
     found = {}
+    shipped = tables.GENERAL_SHIPPED  # the data the shipped general model was trained on
+    assert f" dataset={shipped} " in pretrained.entry(tables.GENERAL).command
+    other = next(step for step in tables.GENERAL_DATA if step != shipped)
     for protocol, _, dataset in tables.OBJECT_SPLITS:
-        found[f"general/objects/rpm_ours_s1/{dataset}"] = {"model": 2.0, "identity": 40.0}
+        found[f"general/{shipped}/rpm_ours_s1/{dataset}"] = {"model": 2.0, "identity": 40.0}
+        found[f"general/{shipped}/rpm_cd_s1/{dataset}"] = {"model": 3.5 if protocol == "real" else 1.5}
+        found[f"general/{other}/rpm_ours_s1/{dataset}"] = {"model": 5.0}
         found[f"general/rpm_ours_objects/{dataset}"] = {"model": 4.0, "identity": 40.0}
         for own in tables.SPLITS:  # each protocol's RPM-CD: 1 on its own test pairs, 3 elsewhere
             mine = own == protocol and dataset in tables.PROTOCOL_DATA
             found[f"general/rpm_cd_{own}/{dataset}"] = {"model": 1.0 if mine else 3.0}
     table = tables.objects_table(found)
-    assert "| `rpm_ours_objects` | 3.00 (4.00, 2.00) |" in table
-    assert "| `rpm_cd_airplane` | 1.00* | 3.00 |" in table
-    outside = len(tables.OBJECT_SPLITS) - 1
+    data = tables.GENERAL_DATA[shipped]
+    assert f"| `rpm_ours_objects` | {data} | 3.00 (4.00, 2.00) |" in table  # the shipped network is seed 0
+    assert f"| `rpm_ours_objects` | {tables.GENERAL_DATA[other]} | 5.00 | 5.00 |" in table
+    assert "| `rpm_cd_airplane` | its protocol | 1.00* | 3.00 |" in table
+    assert "| identity (no motion) |  | 40.00 |" in table
+    splits = len(tables.OBJECT_SPLITS)
+    assert f"- on {data}: `rpm_ours` (mean) <= `rpm_cd` on the same data on 3 of {splits} splits" in table
+    outside = splits - 1
     for protocol in tables.SPLITS:  # the mean, 3, ties every RPM-CD off its protocol's test pairs
-        assert f"<= `rpm_cd_{protocol}` on {outside} of {outside} splits it never trained on" in table
+        name = protocol.capitalize()
+        assert f"on {data}: `rpm_ours` (mean) <= `rpm_cd_{protocol}` on {outside} of {outside} splits {name}" in table
+        assert f"on {tables.GENERAL_DATA[other]}: `rpm_ours` (mean) <= `rpm_cd_{protocol}` on 0 of {outside}" in table
 
 
 def test_the_seeds_step_trains_any_backbone_at_any_seed_of_the_chosen_protocols():

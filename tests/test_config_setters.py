@@ -42,6 +42,8 @@ def _setters(loader, overrides: Iterable[str]) -> dict[str, list[str]]:
         if element.config_path is None or not path.is_file():  # Hydra's own configs
             continue
         values = {key: value for key, value in (yaml.safe_load(path.read_text()) or {}).items() if key != "defaults"}
+        if not values:  # a file that only composes others sets no key
+            continue
         for part in reversed(element.package.split(".") if element.package else []):
             values = {part: values}
         for key in flatten(values):

@@ -168,8 +168,8 @@ def objects_table(scores: Mapping[str, Mapping[str, float]]) -> str:
     lines = ["### Every object in one network", "", header, "|---|---|" + "---:|" * len(OBJECT_SPLITS)]
     general = {}
     for step, data in GENERAL_DATA.items():
-        cells = {key.split("/")[2].rsplit("_s", 1)[0] for key in keys if key.startswith(f"general/{step}/")}
-        for cell in sorted(cells):
+        trained = {key.split("/")[2].rsplit("_s", 1)[0] for key in keys if key.startswith(f"general/{step}/")}
+        for cell in sorted(trained):
             per_seed = []
             for _, _, dataset in OBJECT_SPLITS:
                 seeds = _seeds_of(scores, rf"general/{step}/{cell}_s{{seed}}/{dataset}")
@@ -177,8 +177,8 @@ def objects_table(scores: Mapping[str, Mapping[str, float]]) -> str:
                 is_shipped = (step, cell) == (GENERAL_SHIPPED, "rpm_ours")
                 per_seed.append(_with_shipped(shipped if is_shipped else None, seeds))
             general[step, cell] = [float(np.mean(list(values.values()))) if values else None for values in per_seed]
-            cells = " | ".join(_per_seed(values) for values in per_seed)
-            lines.append(f"| `{cell}_objects` | {data} | {cells} |")
+            row = " | ".join(_per_seed(values) for values in per_seed)
+            lines.append(f"| `{cell}_objects` | {data} | {row} |")
     for protocol in SPLITS:
         for loss in LOSSES:
             name = f"rpm_{loss}_{protocol}"
@@ -189,7 +189,7 @@ def objects_table(scores: Mapping[str, Mapping[str, float]]) -> str:
             text = ["" if v is None else f"{v:.2f}" + ("*" if mine else "") for v, mine in cells]
             lines.append(f"| `{name}` | its protocol | " + " | ".join(text) + " |")
     columns = [[k for k in keys if k.endswith("/" + dataset)] for _, _, dataset in OBJECT_SPLITS]
-    lines += [*(row.replace(" | ", " |  | ", 1) for row in _reference_rows(scores, columns)), ""]
+    lines += [*_reference_rows(scores, columns, label_columns=2), ""]
     for step, data in GENERAL_DATA.items():
         lines += _general_verdicts(scores, data, general.get((step, "rpm_ours")), general.get((step, "rpm_cd")))
     return "\n".join([*lines, ""])
@@ -219,7 +219,7 @@ def general_choice_table(scores: Mapping[str, Mapping[str, float]]) -> str:
         [k for k in scores if k.startswith("general_val/") and k.endswith("/" + dataset)]
         for _, dataset in GENERAL_VALIDATION
     ]
-    lines += [row.replace(" | ", " |  | ", 1) for row in _reference_rows(scores, keys)]
+    lines += _reference_rows(scores, keys, label_columns=2)
     return "\n".join([*lines, ""])
 
 
@@ -255,13 +255,16 @@ def _cells(values: list[float | None]) -> str:
     return " | ".join("" if v is None else f"{v:.2f}" for v in values)
 
 
-def _reference_rows(scores: Mapping[str, Mapping[str, float]], keys: list[list[str]]) -> list[str]:
-    """The identity and ``register`` rows: per column, the value of the first scored key that has it."""
+def _reference_rows(
+    scores: Mapping[str, Mapping[str, float]], keys: list[list[str]], label_columns: int = 1
+) -> list[str]:
+    """The identity and ``register`` rows: per column, the value of the first scored key that has it
+    (after ``label_columns`` columns: the label, then empty ones)."""
     lines = []
     for row, label in (("identity", "identity (no motion)"), ("register", "`linereg.register`")):
         cells = [next((scores[k][row] for k in column if k in scores and row in scores[k]), None) for column in keys]
         if any(value is not None for value in cells):
-            lines.append(f"| {label} | {_cells(cells)} |")
+            lines.append(f"| {label} | " + " | " * (label_columns - 1) + f"{_cells(cells)} |")
     return lines
 
 

@@ -108,10 +108,12 @@ def dataset_config(config: Mapping[str, Any], split: str, variant: str | None = 
 def _split_parts(config: dict[str, Any], split: str, variant: str | None) -> dict[str, Any]:
     """A concat's parts for one split: a part with its own ``splits`` (a dataset config of another
     kind, e.g. depth frames split in time) takes its own entry for ``split`` and ``variant`` and is
-    left out where that entry is ``null``; the other parts get the concat's ``common`` keys."""
+    left out where that entry is ``null``; the other parts get the concat's ``common`` keys. A named
+    part set to ``null`` (by a split or a variant) is left out."""
     parts = config.get("datasets")
-    if isinstance(parts, Mapping):  # named parts, in order
-        parts = list(parts.values())
+    if isinstance(parts, Mapping):  # named parts, in order; null ones left out
+        parts = [part for part in parts.values() if part is not None]
+        config = {**config, "datasets": parts}
     if not isinstance(parts, list) or not any(isinstance(part, Mapping) and "splits" in part for part in parts):
         return config
     common = config.pop("common", None) or {}

@@ -16,8 +16,10 @@
 #                (configs/dataset/objects.yaml), with the line loss and with Chamfer (rpm_cd and
 #                rpm_ours of CELLS);
 #   rooms        the general model with the Real protocol's room frames too
-#                (configs/dataset/objects_and_rooms.yaml: easy pairs 6 frames apart), and with
-#                the rooms at the test pairs' 20 frames throughout (rpm_cd and rpm_ours of CELLS);
+#                (configs/dataset/objects_and_rooms.yaml: easy pairs 6 frames apart), with the
+#                rooms at the test pairs' 20 frames throughout, and with the Real protocol's second
+#                stage after it, the room frames alone 20 frames apart
+#                (configs/curriculum/cpu_objects_and_rooms.yaml; rpm_cd and rpm_ours of CELLS);
 #   real_choice  Real without its easier pairs first: every stage at the test pairs' gap of 20
 #                frames (the recipe's curriculum, re-chosen on validation pairs; rpm_cd, rpm_ours);
 #   dcp_choice   DCP on Airplane without its full-range stage: 4 epochs of easy poses only (the recipe's
@@ -74,7 +76,8 @@ runs() {
         rooms)
           [[ $cell == rpm_gt ]] && continue
           echo "$OUT/objects_and_rooms/${cell}_s$seed experiment=$cell protocol=airplane dataset=objects_and_rooms task_name=${cell}_objects seed=$seed"
-          echo "$OUT/objects_and_rooms_gap20/${cell}_s$seed experiment=$cell protocol=airplane dataset=objects_and_rooms task_name=${cell}_objects dataset.datasets.rooms.variants.easy.frame_gap=20 seed=$seed" ;;
+          echo "$OUT/objects_and_rooms_gap20/${cell}_s$seed experiment=$cell protocol=airplane dataset=objects_and_rooms task_name=${cell}_objects dataset.datasets.rooms.variants.easy.frame_gap=20 seed=$seed"
+          echo "$OUT/objects_then_rooms/${cell}_s$seed experiment=$cell protocol=airplane dataset=objects_and_rooms curriculum=cpu_objects_and_rooms task_name=${cell}_objects seed=$seed" ;;
         real_choice)
           [[ $cell == rpm_gt ]] && continue
           echo "$OUT/real_choice/${cell}_test_gap_s$seed experiment=$cell protocol=real curriculum.stages.easy.variant=null seed=$seed" ;;

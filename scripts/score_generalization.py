@@ -23,7 +23,8 @@ split of :data:`SPLITS` (a dataset config of ``configs/dataset/``). With ``--run
 * ``objects/<cell>_s<seed>``, ``objects_and_rooms/<cell>_s<seed>``: networks trained on every
   object (``dataset=objects``), and on the room frames too (``dataset=objects_and_rooms``), with
   the shipped general model ``rpm_ours_objects`` (seed 0 of :data:`GENERAL_SHIPPED`) and every
-  shipped protocol network, on every split of every protocol (:data:`OBJECT_SPLITS`).
+  shipped protocol network, on every split of every protocol (:data:`OBJECT_SPLITS`), and each
+  protocol's RPM-CD at its other seeds on the splits its protocol never trained on.
 
 Every table gives the identity's error on the same pairs and, with ``--register``, that of
 ``linereg.register`` (the default solver, no network). Each score is cached in
@@ -248,7 +249,8 @@ def _pairs_key(protocol: str, dataset: str) -> str:
 
 
 def object_jobs(runs: Path | None) -> list[Job]:
-    """The general model, the runs of :data:`GENERAL_DATA` and every shipped protocol network on every split."""
+    """The general model, the runs of :data:`GENERAL_DATA` and every shipped protocol network on every split;
+    each protocol's RPM-CD at its other seeds (``recipe/<protocol>/rpm_cd_s<seed>``) on the others."""
     from linereg import pretrained
 
     rows = {f"rpm_{loss}_{protocol}": f"rpm_{loss}_{protocol}" for protocol in SPLITS for loss in LOSSES}
@@ -257,11 +259,21 @@ def object_jobs(runs: Path | None) -> list[Job]:
     if runs is not None:
         for step in GENERAL_DATA:
             rows.update({name: str(folder) for name, folder in run_folders(runs, step).items()})
-    return [
+    jobs = [
         Job(f"general/{row}/{dataset}", checkpoint, dataset, "test", _pairs_key(protocol, dataset))
         for row, checkpoint in rows.items()
         for protocol, _, dataset in OBJECT_SPLITS
     ]
+    if runs is not None:  # each protocol's RPM-CD at its other seeds, on the splits it never trained on
+        for protocol in SPLITS:
+            for name, folder in run_folders(runs / "recipe", protocol).items():
+                if Path(name).name.startswith("rpm_cd_s"):
+                    jobs += [
+                        Job(f"general/recipe/{name}/{dataset}", str(folder), dataset, "test", _pairs_key(own, dataset))
+                        for own, _, dataset in OBJECT_SPLITS
+                        if not (own == protocol and dataset in PROTOCOL_DATA)
+                    ]
+    return jobs
 
 
 def general_validation_jobs(runs: Path) -> list[Job]:

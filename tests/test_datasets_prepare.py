@@ -75,6 +75,20 @@ def test_a_concat_part_with_its_own_splits_takes_them_instead_of_common():
         dataset_config({**config, "variants": {"hard": {}}}, "train", "hard")
 
 
+def test_a_variant_leaves_out_the_named_parts_it_sets_to_null():
+    """A curriculum stage on one part of a concat: the variant nulls the others."""
+    own = {**SMALL, "splits": {"train": {"num_shapes": 2}}, "variants": {"frames_only": {"seed": 4}}}
+    config = {
+        "name": "concat",
+        "datasets": {"shapes": SMALL, "frames": own},
+        "splits": {"train": {"common": {"split": "train"}}},
+        "variants": {"frames_only": {"datasets": {"shapes": None}}},
+    }
+    train = build_dataset(dataset_config(config, "train", "frames_only"))
+    assert [(len(part), part.seed) for part in train.parts] == [(10, 4)]
+    assert len(build_dataset(dataset_config(config, "train")).parts) == 2
+
+
 def test_prepare_procedural_writes_a_loadable_cache(tmp_path, capsys):
     argv = ["procedural", "--num-shapes", "1", "--out", str(tmp_path), "--workers", "0", "--splits", "test"]
     assert prepare_dataset.main(argv) == 0

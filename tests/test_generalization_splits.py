@@ -105,11 +105,11 @@ def test_the_mixed_airplane_pairs_are_the_protocols_shapes_with_both_targets(sha
     assert {mixed.protocol.target_of(view) for _, view in pair_identities(mixed)} == {"view", "whole"}
 
 
-def _objects(split: str, dataset: str = "objects"):
-    """``split`` of a general model's data (every object, both pair types; ``objects_and_rooms``:
-    and the Real protocol's room frames), without a cache."""
+def _objects(split: str, dataset: str = "objects", variant: str | None = None):
+    """``split`` (at a ``variant``) of a general model's data (every object, both pair types;
+    ``objects_and_rooms``: and the Real protocol's room frames), without a cache."""
     overrides = ["protocol=airplane", "experiment=rpm_ours", f"dataset={dataset}", "dataset.cache_dir=null"]
-    return build_split(plain(_compose("train", overrides).dataset), split, progress=False)
+    return build_split(plain(_compose("train", overrides).dataset), split, variant=variant, progress=False)
 
 
 @pytest.mark.parametrize("dataset", ["objects", "objects_and_rooms"])
@@ -131,6 +131,10 @@ def test_the_general_model_trains_on_no_pair_it_is_scored_on(dataset, shared_dat
         assert pair_identities(scored[name]) <= test, name
     rooms = {file for file in files if file.endswith(".depth.png")}
     assert (len(rooms) == 190) == (dataset == "objects_and_rooms"), len(rooms)
+    if dataset == "objects_and_rooms":  # the rooms stage (cpu_objects_and_rooms): training frames alone
+        alone = pair_identities(_objects("train", dataset, variant="rooms_only"))
+        assert len(alone) == 190 and {file for file, _ in alone} <= rooms
+        assert not any(pair_identities(split) & alone for split in scored.values())
     assert _objects("train", dataset).parts[0].protocol.target == "mixed"
 
 

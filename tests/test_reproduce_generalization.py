@@ -41,6 +41,7 @@ def test_every_fold_and_seed_of_every_step_is_a_cell_command_with_a_dataset():
         "objects": 2 * 2,  # the general model and its Chamfer twin x seeds
         "objects_and_rooms": 2 * 2,  # the same with the room frames
         "objects_and_rooms_gap20": 2 * 2,  # and with the rooms at the test pairs' gap throughout
+        "objects_then_rooms": 2 * 2,  # and with the rooms alone at that gap after it
         "real_choice": 2 * 2,  # the Real cells without easier pairs first x seeds
         "dcp_choice": 2 * 2,  # DCP's cd and ours on Airplane without the full-range stage x seeds
         "human_stretch": 2 * 2,  # the Human cells on stretched training pairs x seeds
@@ -66,8 +67,9 @@ def test_every_fold_and_seed_of_every_step_is_a_cell_command_with_a_dataset():
                 == f"experiment={cell} protocol=human +dataset.splits.train.protocol.anisotropic_scale=0.2 seed={seed}"
             )
         if step.startswith("objects"):
-            data = step.removesuffix("_gap20")
-            assert f"protocol=airplane dataset={data} task_name={cell}_objects " in args
+            data = "objects" if step == "objects" else "objects_and_rooms"
+            then = " curriculum=cpu_objects_and_rooms" if step == "objects_then_rooms" else ""
+            assert f"protocol=airplane dataset={data}{then} task_name={cell}_objects " in args
             assert ("dataset.datasets.rooms.variants.easy.frame_gap=20 " in args) == step.endswith("_gap20")
         if step == "human_choice":
             nu, lines = name.removeprefix("rpm_ours_nu").split("_lines")
@@ -88,7 +90,7 @@ def test_an_unknown_step_is_one_line_and_exit_code_2():
 def test_the_scores_find_linked_runs_and_count_where_the_general_model_wins(tmp_path):
     """``score_generalization.py`` follows runs linked into its folder, and its general-model table
     counts, per protocol, the splits that protocol never trained on where the general model's mean
-    is at most that protocol's RPM-CD."""
+    is at most that protocol's RPM-CD: the shipped network, and the mean over its seeds."""
     from scripts import _generalization_tables as tables
     from scripts import score_generalization as scores
 
@@ -100,6 +102,14 @@ def test_the_scores_find_linked_runs_and_count_where_the_general_model_wins(tmp_
     assert scores.run_folders(tmp_path / "runs", "objects") == {
         "objects/rpm_ours_s1": tmp_path / "runs/objects/rpm_ours_s1"
     }
+    (tmp_path / "runs" / "recipe" / "airplane").mkdir(parents=True)
+    for cell in ("rpm_cd_s1", "rpm_ours_s1"):
+        (tmp_path / "runs" / "recipe" / "airplane" / cell).symlink_to(elsewhere)
+    seed_jobs = [job for job in scores.object_jobs(tmp_path / "runs") if job.key.startswith("general/recipe/")]
+    assert {job.key.rsplit("/", 1)[1] for job in seed_jobs} == {d for _, _, d in tables.OBJECT_SPLITS} - {
+        "airplane_views"
+    }  # RPM-CD's other seeds, off its own test pairs only
+    assert {job.key.rsplit("/", 2)[1] for job in seed_jobs} == {"rpm_cd_s1"}
 
     found = {}
     shipped = tables.GENERAL_SHIPPED  # the data the shipped general model was trained on
@@ -113,19 +123,25 @@ def test_the_scores_find_linked_runs_and_count_where_the_general_model_wins(tmp_
         for own in tables.SPLITS:  # each protocol's RPM-CD: 1 on its own test pairs, 3 elsewhere
             mine = own == protocol and dataset in tables.PROTOCOL_DATA
             found[f"general/rpm_cd_{own}/{dataset}"] = {"model": 1.0 if mine else 3.0}
+            if own == "airplane" and not mine:  # its seed 1 at 2: a mean of 2.5 off its protocol
+                found[f"general/recipe/airplane/rpm_cd_s1/{dataset}"] = {"model": 2.0}
     table = tables.objects_table(found)
     data = tables.GENERAL_DATA[shipped]
     assert f"| `rpm_ours_objects` | {data} | 3.00 (4.00, 2.00) |" in table  # the shipped network is seed 0
     assert f"| `rpm_ours_objects` | {tables.GENERAL_DATA[other]} | 5.00 | 5.00 |" in table
-    assert "| `rpm_cd_airplane` | its protocol | 1.00* | 3.00 |" in table
+    assert "| `rpm_cd_airplane` | its protocol | 1.00* | 2.50 (3.00, 2.00) |" in table
+    assert "| `rpm_cd_human` | its protocol | 3.00 | 3.00 |" in table
     assert "| identity (no motion) |  | 40.00 |" in table
     splits = len(tables.OBJECT_SPLITS)
     assert f"- on {data}: `rpm_ours` (mean) <= `rpm_cd` on the same data on 3 of {splits} splits" in table
     outside = splits - 1
-    for protocol in tables.SPLITS:  # the mean, 3, ties every RPM-CD off its protocol's test pairs
+    for protocol in tables.SPLITS:  # the mean, 3, ties every shipped RPM-CD off its protocol's test pairs
         name = protocol.capitalize()
-        assert f"on {data}: `rpm_ours` (mean) <= `rpm_cd_{protocol}` on {outside} of {outside} splits {name}" in table
+        verdict = f"`rpm_cd_{protocol}` on {outside} of {outside} splits {name} never trained on (the shipped network"
+        assert f"on {data}: `rpm_ours` (mean) <= {verdict}" in table
         assert f"on {tables.GENERAL_DATA[other]}: `rpm_ours` (mean) <= `rpm_cd_{protocol}` on 0 of {outside}" in table
+    assert "Airplane never trained on (the shipped network, seed 0); on 0 against its mean over 2 seeds" in table
+    assert "Human never trained on (the shipped network, seed 0)\n" in table
 
 
 def test_the_seeds_step_trains_any_backbone_at_any_seed_of_the_chosen_protocols():

@@ -57,6 +57,7 @@ GENERAL_DATA = {
     "objects_and_rooms": "every object and the room frames (6 frames apart)",
     "objects_and_rooms_gap20": "every object and the room frames (20 frames apart)",
     "objects_then_rooms": "every object and the room frames, then the room frames alone",
+    "objects_then_far_rooms": "every object and the room frames, then the rooms 20 frames apart beside the objects",
 }
 GENERAL_SHIPPED = "objects_and_rooms"
 # The general models' validation pairs (the choice of their training data): (column, dataset config).

@@ -20,8 +20,9 @@ split of :data:`SPLITS` (a dataset config of ``configs/dataset/``). With ``--run
   validation pairs (the choice) and test pairs (:data:`SCHEDULE_CHOICES`);
 * ``human_stretch/<cell>_stretch0.2_s<seed>``: the Human cells trained on stretched pairs, beside
   the recipe's, on Human's validation pairs (the choice), test pairs and other splits;
-* ``objects/<cell>_s<seed>``, ``objects_and_rooms/<cell>_s<seed>``: networks trained on every
-  object (``dataset=objects``), and on the room frames too (``dataset=objects_and_rooms``), with
+* ``objects/<cell>_s<seed>``, ``objects_and_rooms/<cell>_s<seed>`` and the other steps of
+  :data:`GENERAL_DATA`: networks trained on every object (``dataset=objects``), and on the room
+  frames too (``dataset=objects_and_rooms``, at other gaps and schedules), with
   the shipped general model ``rpm_ours_objects`` (seed 0 of :data:`GENERAL_SHIPPED`) and every
   shipped protocol network, on every split of every protocol (:data:`OBJECT_SPLITS`), and each
   protocol's RPM-CD at its other seeds on the splits its protocol never trained on.

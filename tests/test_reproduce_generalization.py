@@ -42,6 +42,7 @@ def test_every_fold_and_seed_of_every_step_is_a_cell_command_with_a_dataset():
         "objects_and_rooms": 2 * 2,  # the same with the room frames
         "objects_and_rooms_gap20": 2 * 2,  # and with the rooms at the test pairs' gap throughout
         "objects_then_rooms": 2 * 2,  # and with the rooms alone at that gap after it
+        "objects_then_far_rooms": 2 * 2,  # or with the rooms at that gap beside the objects after it
         "real_choice": 2 * 2,  # the Real cells without easier pairs first x seeds
         "dcp_choice": 2 * 2,  # DCP's cd and ours on Airplane without the full-range stage x seeds
         "human_stretch": 2 * 2,  # the Human cells on stretched training pairs x seeds
@@ -68,8 +69,10 @@ def test_every_fold_and_seed_of_every_step_is_a_cell_command_with_a_dataset():
             )
         if step.startswith("objects"):
             data = "objects" if step == "objects" else "objects_and_rooms"
-            then = " curriculum=cpu_objects_and_rooms" if step == "objects_then_rooms" else ""
+            then = " curriculum=cpu_objects_and_rooms" if step.startswith("objects_then") else ""
             assert f"protocol=airplane dataset={data}{then} task_name={cell}_objects " in args
+            far = "curriculum.stages.rooms.variant=far_rooms curriculum.stages.rooms.epochs=2 "
+            assert (far in args) == (step == "objects_then_far_rooms")
             assert ("dataset.datasets.rooms.variants.easy.frame_gap=20 " in args) == step.endswith("_gap20")
         if step == "human_choice":
             nu, lines = name.removeprefix("rpm_ours_nu").split("_lines")

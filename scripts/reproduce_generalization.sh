@@ -18,9 +18,9 @@
 #   rooms        the general model with the Real protocol's room frames too
 #                (configs/dataset/objects_and_rooms.yaml: easy pairs 6 frames apart), with the
 #                rooms at the test pairs' 20 frames throughout, and with the Real protocol's second
-#                stage after it at 20 frames apart: the room frames alone, or 2 epochs of the rooms
-#                beside the objects (configs/curriculum/cpu_objects_and_rooms.yaml; rpm_cd and
-#                rpm_ours of CELLS);
+#                stage after it at 20 frames apart (the Airplane curriculum's `full` stage at a
+#                variant of objects_and_rooms.yaml): 4 epochs of the room frames alone, or 2 of the
+#                rooms beside the objects (rpm_cd and rpm_ours of CELLS);
 #   real_choice  Real without its easier pairs first: every stage at the test pairs' gap of 20
 #                frames (the recipe's curriculum, re-chosen on validation pairs; rpm_cd, rpm_ours);
 #   dcp_choice   DCP on Airplane without its full-range stage: 4 epochs of easy poses only (the recipe's
@@ -78,8 +78,8 @@ runs() {
           [[ $cell == rpm_gt ]] && continue
           echo "$OUT/objects_and_rooms/${cell}_s$seed experiment=$cell protocol=airplane dataset=objects_and_rooms task_name=${cell}_objects seed=$seed"
           echo "$OUT/objects_and_rooms_gap20/${cell}_s$seed experiment=$cell protocol=airplane dataset=objects_and_rooms task_name=${cell}_objects dataset.datasets.rooms.variants.easy.frame_gap=20 seed=$seed"
-          echo "$OUT/objects_then_rooms/${cell}_s$seed experiment=$cell protocol=airplane dataset=objects_and_rooms curriculum=cpu_objects_and_rooms task_name=${cell}_objects seed=$seed"
-          echo "$OUT/objects_then_far_rooms/${cell}_s$seed experiment=$cell protocol=airplane dataset=objects_and_rooms curriculum=cpu_objects_and_rooms task_name=${cell}_objects curriculum.stages.rooms.variant=far_rooms curriculum.stages.rooms.epochs=2 seed=$seed" ;;
+          echo "$OUT/objects_then_rooms/${cell}_s$seed experiment=$cell protocol=airplane dataset=objects_and_rooms task_name=${cell}_objects curriculum.stages.full.epochs=4 curriculum.stages.full.variant=rooms_only seed=$seed"
+          echo "$OUT/objects_then_far_rooms/${cell}_s$seed experiment=$cell protocol=airplane dataset=objects_and_rooms task_name=${cell}_objects curriculum.stages.full.epochs=2 curriculum.stages.full.variant=far_rooms seed=$seed" ;;
         real_choice)
           [[ $cell == rpm_gt ]] && continue
           echo "$OUT/real_choice/${cell}_test_gap_s$seed experiment=$cell protocol=real curriculum.stages.easy.variant=null seed=$seed" ;;

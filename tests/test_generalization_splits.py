@@ -131,7 +131,7 @@ def test_the_general_model_trains_on_no_pair_it_is_scored_on(dataset, shared_dat
         assert pair_identities(scored[name]) <= test, name
     rooms = {file for file in files if file.endswith(".depth.png")}
     assert (len(rooms) == 190) == (dataset == "objects_and_rooms"), len(rooms)
-    if dataset == "objects_and_rooms":  # the rooms stage (cpu_objects_and_rooms): training frames alone
+    if dataset == "objects_and_rooms":  # the rooms' second stage: training frames alone
         alone = pair_identities(_objects("train", dataset, variant="rooms_only"))
         assert len(alone) == 190 and {file for file, _ in alone} <= rooms
         assert not any(pair_identities(split) & alone for split in scored.values())

@@ -69,10 +69,11 @@ def test_every_fold_and_seed_of_every_step_is_a_cell_command_with_a_dataset():
             )
         if step.startswith("objects"):
             data = "objects" if step == "objects" else "objects_and_rooms"
-            then = " curriculum=cpu_objects_and_rooms" if step.startswith("objects_then") else ""
-            assert f"protocol=airplane dataset={data}{then} task_name={cell}_objects " in args
-            far = "curriculum.stages.rooms.variant=far_rooms curriculum.stages.rooms.epochs=2 "
-            assert (far in args) == (step == "objects_then_far_rooms")
+            assert f"protocol=airplane dataset={data} task_name={cell}_objects " in args
+            stage = {"objects_then_rooms": "4", "objects_then_far_rooms": "2"}.get(step)
+            assert (f"curriculum.stages.full.epochs={stage} " in args) == (stage is not None)
+            variant = {"objects_then_rooms": "rooms_only", "objects_then_far_rooms": "far_rooms"}.get(step)
+            assert (f"curriculum.stages.full.variant={variant} " in args) == (variant is not None)
             assert ("dataset.datasets.rooms.variants.easy.frame_gap=20 " in args) == step.endswith("_gap20")
         if step == "human_choice":
             nu, lines = name.removeprefix("rpm_ours_nu").split("_lines")

@@ -93,6 +93,14 @@ class ConcatPairs(PairDataset):
         }
 
 
+def concat_parts(datasets: Sequence[Any] | Mapping[str, Any]) -> list[Any]:
+    """A concat's part configs as a list: a mapping's named parts in order, those set to ``null``
+    (by a split or a variant) left out."""
+    if isinstance(datasets, Mapping):
+        return [part for part in datasets.values() if part is not None]
+    return list(datasets)
+
+
 @DATASETS.register("concat")
 def build_concat(
     *,
@@ -103,11 +111,10 @@ def build_concat(
     common: Mapping[str, Any] | None = None,
 ) -> ConcatPairs:
     """Concatenate dataset configs (each ``{name: ..., **kwargs}``, with ``common`` merged into
-    each; a mapping: named parts, in order) and take a split."""
+    each; a mapping: named parts, in order, see :func:`concat_parts`) and take a split."""
     from linereg.datasets import build_dataset
 
-    if isinstance(datasets, Mapping):
-        datasets = list(datasets.values())
+    datasets = concat_parts(datasets)
     if common is not None and not isinstance(common, Mapping):
         raise TypeError(f"concat's common must be a mapping of keys for every part, got {type(common).__name__}")
     merged = [OmegaConf.to_container(OmegaConf.merge(config, common or {})) for config in datasets]

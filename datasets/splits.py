@@ -25,6 +25,7 @@ from torch.utils.data import Dataset, Subset
 
 from linereg.datasets import CACHE_KEYS, build_dataset, materialize
 from linereg.datasets.base import PairDataset
+from linereg.datasets.combine import concat_parts
 from linereg.registry import plain
 from linereg.structures import PairSample
 
@@ -110,11 +111,9 @@ def _split_parts(config: dict[str, Any], split: str, variant: str | None) -> dic
     kind, e.g. depth frames split in time) takes its own entry for ``split`` and ``variant`` and is
     left out where that entry is ``null``; the other parts get the concat's ``common`` keys. A named
     part set to ``null`` (by a split or a variant) is left out."""
-    parts = config.get("datasets")
-    if isinstance(parts, Mapping):  # named parts, in order; null ones left out
-        parts = [part for part in parts.values() if part is not None]
-        config = {**config, "datasets": parts}
-    if not isinstance(parts, list) or not any(isinstance(part, Mapping) and "splits" in part for part in parts):
+    parts = concat_parts(config.get("datasets") or [])
+    config = {**config, "datasets": parts}
+    if not any(isinstance(part, Mapping) and "splits" in part for part in parts):
         return config
     common = config.pop("common", None) or {}
     resolved = []

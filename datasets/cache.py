@@ -1,28 +1,35 @@
-"""On-disk cache of generated pairs: compressed shards plus a manifest of the generator settings.
+"""On-disk cache of generated pairs: compressed shards plus a manifest of what generated them.
 
-Layout of one cache (``<cache_root>/<dataset name>-<settings hash>/``)::
+Layout of one cache (``<cache_root>/<dataset name>-<provenance hash>/``)::
 
-    manifest.json            format version, generator settings, pair count, shards, timing
+    manifest.json            format version, generator settings, code hash, library versions,
+                             pair count, shards, timing
     shard_0000000_0000256.npz  pairs [0, 256): concatenated clouds + offsets, transforms, meta
 
-The folder name hashes :meth:`PairDataset.settings`, so changing any generator setting
-writes a new cache instead of silently reusing a stale one. Shards are written atomically
-as they finish; an interrupted run resumes by generating only the missing shards, and
-:func:`materialize` regenerates (with a warning) a shard that was deleted or cannot be read and
-a manifest that cannot be parsed. Loading
-reads every shard once into memory (a 10 000-pair, 1024-point cache with normals is ~0.5 GB)
-and then serves pairs by slicing, shared copy-on-write with forked DataLoader workers.
+The folder name hashes the pairs' provenance (:func:`provenance`): :meth:`PairDataset.settings`,
+the source of the code that generates them (:func:`generator_code`) and the versions of the
+libraries it computes with (:data:`GENERATOR_LIBRARIES`). Changing a generator setting, editing the
+generating code or upgrading one of those libraries writes a new cache instead of silently reusing
+a stale one.
+
+Shards are written atomically as they finish; an interrupted run resumes by generating only the
+missing shards, and :func:`materialize` regenerates (with a warning) a shard that was deleted or
+cannot be read and a manifest that cannot be parsed. Loading reads every shard once into memory (a
+10 000-pair, 1024-point cache with normals is ~0.5 GB) and then serves pairs by slicing, shared
+copy-on-write with forked DataLoader workers.
 """
 
 from __future__ import annotations
 
 import contextlib
 import hashlib
+import importlib.metadata
 import json
 import math
 import multiprocessing
 import os
 import secrets
+import sys
 import time
 import warnings
 import zipfile
@@ -30,6 +37,7 @@ import zlib
 from collections.abc import Iterator
 from datetime import datetime, timezone
 from pathlib import Path
+from types import ModuleType
 from typing import Any, BinaryIO
 
 import numpy as np
@@ -68,9 +76,111 @@ def settings_key(settings: dict[str, Any]) -> str:
     return hashlib.sha256(text.encode()).hexdigest()[:16]
 
 
+GENERATOR_LIBRARIES: dict[str, tuple[str, ...]] = {
+    "numpy": ("numpy",),
+    "torch": ("torch",),
+    "scipy": ("scipy",),
+    "roma": ("roma",),
+    "fpsample": ("fpsample",),
+    "trimesh": ("trimesh",),
+    "open3d": ("open3d", "open3d-cpu"),
+    "pillow": ("pillow",),
+    "h5py": ("h5py",),
+}
+"""The libraries whose results enter generated pairs (random numbers, sampling, ray casting,
+normals, file readers), each with the distributions that install it."""
+
+
+def library_versions() -> dict[str, str]:
+    """The installed version of each of :data:`GENERATOR_LIBRARIES` (``"absent"`` when not installed)."""
+    versions = {}
+    for library, distributions in GENERATOR_LIBRARIES.items():
+        versions[library] = "absent"
+        for distribution in distributions:
+            with contextlib.suppress(importlib.metadata.PackageNotFoundError):
+                versions[library] = importlib.metadata.version(distribution)
+                break
+    return versions
+
+
+def _generator_modules(dataset: PairDataset) -> set[str]:
+    """Modules of the classes that ``dataset`` is made of: its own, those of the datasets it wraps (a
+    concat's parts) and of every ``linereg`` object it holds (a shape source, a pair protocol)."""
+    modules, pending, seen = set(), [dataset], set()
+    while pending:
+        item = pending.pop()
+        if id(item) in seen:
+            continue
+        seen.add(id(item))
+        if isinstance(item, (list, tuple, set, frozenset)):
+            pending.extend(item)
+        elif isinstance(item, dict):
+            pending.extend(item.values())
+        elif isinstance(item, Dataset) or type(item).__module__.startswith("linereg."):
+            modules.update(
+                cls.__module__
+                for cls in type(item).__mro__
+                if issubclass(cls, PairDataset) or cls.__module__.startswith("linereg.")
+            )
+            pending.extend(getattr(item, "__dict__", {}).values())
+    return modules
+
+
+def _linereg_modules(module: ModuleType) -> set[str]:
+    """Names of the ``linereg.*`` modules that ``module``'s globals come from (imported names)."""
+    names = set()
+    for value in vars(module).values():
+        name = value.__name__ if isinstance(value, ModuleType) else getattr(value, "__module__", None)
+        if isinstance(name, str) and name.startswith("linereg.") and name in sys.modules:
+            names.add(name)
+    return names
+
+
+def generator_code(dataset: PairDataset) -> dict[str, str]:
+    """A hash of the source of every module that generates the pairs of ``dataset``.
+
+    The modules are those defining the classes that ``dataset`` is made of (:func:`_generator_modules`)
+    and, transitively, every ``linereg.*`` module whose names they import (geometry, sampling,
+    readers).
+    A module without a source file (defined interactively) enters by its name alone.
+
+    Returns:
+        ``{"sha256": <hash of the sources>, "modules": <their names, sorted>}``.
+    """
+    pending = _generator_modules(dataset)
+    modules: set[str] = set()
+    while pending:
+        name = pending.pop()
+        modules.add(name)
+        pending |= _linereg_modules(sys.modules[name]) - modules
+    digest = hashlib.sha256()
+    for name in sorted(modules):
+        file = getattr(sys.modules[name], "__file__", None)
+        digest.update(name.encode() + b"\0" + (Path(file).read_bytes() if file else b"") + b"\0")
+    return {"sha256": digest.hexdigest(), "modules": sorted(modules)}
+
+
+def provenance(dataset: PairDataset) -> dict[str, Any]:
+    """What determines the pairs of ``dataset``: its settings, its code and its libraries' versions.
+
+    The cache folder is named by a hash of this dictionary (:func:`cache_path`), and its manifest
+    records it.
+    """
+    return {
+        "settings": _canonical(dataset.settings()),
+        "code": generator_code(dataset)["sha256"],
+        "libraries": library_versions(),
+    }
+
+
 def cache_path(dataset: PairDataset, cache_root: str | Path) -> Path:
-    """The cache folder of ``dataset`` under ``cache_root``."""
-    return Path(cache_root) / f"{dataset.registry_name}-{settings_key(dataset.settings())}"
+    """The cache folder of ``dataset`` under ``cache_root``, named by a hash of its :func:`provenance`."""
+    return _cache_path(provenance(dataset), dataset, cache_root)
+
+
+def _cache_path(origin: dict[str, Any], dataset: PairDataset, cache_root: str | Path) -> Path:
+    """The cache folder under ``cache_root`` of ``dataset`` with provenance ``origin``."""
+    return Path(cache_root) / f"{dataset.registry_name}-{settings_key(origin)}"
 
 
 @contextlib.contextmanager
@@ -260,7 +370,8 @@ def materialize(
 ) -> CachedPairs:
     """Generate every pair of ``dataset`` once into a cache under ``cache_root`` and load it.
 
-    An existing complete cache with the same settings is loaded without generating anything;
+    An existing complete cache with the same provenance (settings, code, library versions) is
+    loaded without generating anything;
     missing or unreadable shards and an unreadable manifest are regenerated with a warning.
 
     Args:
@@ -274,8 +385,8 @@ def materialize(
     Returns:
         The loaded cache.
     """
-    path = cache_path(dataset, cache_root)
-    settings = _canonical(dataset.settings())
+    origin = provenance(dataset)
+    path = _cache_path(origin, dataset, cache_root)
     manifest_file = path / MANIFEST
     if manifest_file.is_file():
         try:
@@ -285,17 +396,25 @@ def materialize(
                 f"{error.files[0]}: unreadable cache manifest; writing a new one", RuntimeWarning, stacklevel=2
             )
             manifest = {}
-        if manifest.get("settings") == settings and manifest.get("num_pairs") == len(dataset):
+        if manifest and any(manifest.get(key) != value for key, value in origin.items()):
+            warnings.warn(
+                f"{path}: written from other settings, code or library versions; generating it again",
+                RuntimeWarning,
+                stacklevel=2,
+            )
+            for shard in path.glob("shard_*.npz"):
+                shard.unlink()
+        elif manifest.get("num_pairs") == len(dataset):
             try:
                 return CachedPairs(path)
             except CorruptCacheError as error:
                 _discard(error)
-    _generate(dataset, path, settings, workers=workers, shard_size=shard_size, progress=progress)
+    _generate(dataset, path, origin, workers=workers, shard_size=shard_size, progress=progress)
     try:
         return CachedPairs(path)
     except CorruptCacheError as error:  # a shard left by an earlier run that wrote no manifest
         _discard(error)
-    _generate(dataset, path, settings, workers=workers, shard_size=shard_size, progress=progress)
+    _generate(dataset, path, origin, workers=workers, shard_size=shard_size, progress=progress)
     return CachedPairs(path)
 
 
@@ -308,9 +427,10 @@ def _discard(error: CorruptCacheError) -> None:
 
 
 def _generate(
-    dataset: PairDataset, path: Path, settings: dict[str, Any], *, workers: int | None, shard_size: int, progress: bool
+    dataset: PairDataset, path: Path, origin: dict[str, Any], *, workers: int | None, shard_size: int, progress: bool
 ) -> None:
-    """Generate the missing shards of the cache at ``path`` and write its manifest."""
+    """Generate the missing shards of the cache at ``path`` and write its manifest (with ``origin``,
+    the dataset's :func:`provenance`)."""
     manifest_file = path / MANIFEST
     path.mkdir(parents=True, exist_ok=True)
     shard_size = min(shard_size, max(8, math.ceil(len(dataset) / 16)))
@@ -343,7 +463,7 @@ def _generate(
     manifest = {
         "version": FORMAT_VERSION,
         "dataset": dataset.registry_name,
-        "settings": settings,
+        **origin,
         "num_pairs": len(dataset),
         "shards": shards,
         "generated_pairs": sum(t[1] - t[0] for t in todo),

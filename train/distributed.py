@@ -20,6 +20,7 @@ import warnings
 from dataclasses import dataclass, field, replace
 from typing import Any
 
+import numba
 import torch
 import torch.distributed as dist
 from torch import nn
@@ -90,14 +91,20 @@ def resolve_device(spec: str, local_rank: int = 0, *, name: str = "trainer.devic
 
 
 def set_threads(threads: int | None) -> None:
-    """Use ``threads`` CPU threads in torch (``None``: torch's default, all cores). One thread
-    per process avoids the heavy slowdown of OpenMP thread pools on an oversubscribed CPU. (The
-    loss's compiled kernels are serial and need no setting.)"""
-    if threads is None:
-        return
-    if threads < 1:
+    """Compute with ``threads`` CPU threads in torch and in the loss's numba kernels (``None``:
+    torch's default, all cores), capped at numba's pool (``NUMBA_NUM_THREADS``).
+
+    Both counts are set to the same value because numba's OpenMP threading layer sets the OpenMP
+    thread count of its caller to its own at each parallel call: torch would otherwise compute
+    with one count before the process's first loss evaluation and another after it, and a run
+    resumed in a new process would differ in the last bits from the uninterrupted one. One thread
+    per process avoids the heavy slowdown of OpenMP thread pools on an oversubscribed CPU.
+    """
+    if threads is not None and threads < 1:
         raise ValueError(f"trainer.threads must be >= 1 or null, got {threads}")
-    torch.set_num_threads(threads)
+    count = min(torch.get_num_threads() if threads is None else threads, numba.config.NUMBA_NUM_THREADS)
+    torch.set_num_threads(count)
+    numba.set_num_threads(count)
 
 
 def _export_slurm_environment() -> None:

@@ -30,6 +30,8 @@ from linereg.fps import farthest_point_subset as fps
 from linereg.io import PointCloud, read_point_cloud
 from linereg.registration.evaluation import assess_registration
 from linereg.registration.methods import METHODS, MethodResult, run_centered, run_with_init
+from linereg.registration.similarity import scale_guesses, scale_of, similarity_polish, with_scale
+from linereg.registration.trust import surface_points
 from linereg.registry import UnknownNameError
 
 DEFAULT_METHOD = "robust"
@@ -49,6 +51,7 @@ class RegistrationResult:
         confident: the pose can be trusted: the same test for every method
             (:func:`~linereg.registration.evaluation.assess_registration`).
         seconds: wall-clock time of the registration (reading files excluded).
+        scale: the scale ``s`` of ``transformation = [s R | t]`` with ``scale=True`` (1 otherwise).
         info: the method's details: ``method``, ``fitness_threshold``, ``sampling_distance``, and
             for the default solver ``rounds``, ``candidates``, ``selection``, ...
     """
@@ -59,6 +62,7 @@ class RegistrationResult:
     confident: bool
     seconds: float
     info: dict[str, Any] = field(default_factory=dict)
+    scale: float = 1.0
 
 
 def as_cloud(value: Any, name: str) -> tuple[np.ndarray, np.ndarray | None]:
@@ -215,7 +219,11 @@ def training_half_extent(dataset: Mapping[str, Any]) -> float | None:
 
 
 def quality(
-    src: np.ndarray, tgt: np.ndarray, transform: np.ndarray, fitness_threshold: float | None = None
+    src: np.ndarray,
+    tgt: np.ndarray,
+    transform: np.ndarray,
+    fitness_threshold: float | None = None,
+    on_surface: np.ndarray | bool | None = True,
 ) -> dict[str, Any]:
     """``fitness``, ``inlier_rmse``, ``fitness_threshold``, ``sampling_distance`` and ``confident`` of
     ``transform (4, 4)`` mapping ``src (N, 3)`` onto ``tgt (M, 3)``: the same test for every method
@@ -224,8 +232,11 @@ def quality(
     Args:
         fitness_threshold: inlier distance of ``fitness`` and ``inlier_rmse`` in input units
             (``None``: 3 sampling distances of the target).
+        on_surface: the target's clutter-free points (``True``: found here; ``None``: all).
     """
-    return assess_registration(src, tgt, transform, fitness_threshold)._asdict()
+    found = assess_registration(src, tgt, transform, fitness_threshold, on_surface)._asdict()
+    found["warnings"] = list(found["warnings"])
+    return found
 
 
 def _build(method: Any, device: str | None, options: dict[str, Any]):
@@ -256,6 +267,7 @@ def register(
     device: str | None = None,
     *,
     fitness_threshold: float | None = None,
+    scale: bool = False,
     **options: Any,
 ) -> RegistrationResult:
     """Find the rigid transform mapping ``source`` onto ``target``.
@@ -274,6 +286,8 @@ def register(
             that take one (the solvers and networks, not the Open3D baselines).
         fitness_threshold: inlier distance of ``fitness`` / ``inlier_rmse`` in input units
             (``None``: 3 sampling distances of the target).
+        scale: solve a similarity ``tgt ≈ s R src + t`` (clouds in different units,
+            :mod:`~linereg.registration.similarity`): ``transformation`` is ``[s R | t]`` and ``scale`` is ``s``.
         **options: the method's keyword arguments (e.g. ``num_points``, ``options={...}`` of
             the robust solver, ``stages`` of ``adam_loss``, ``refine`` of a network).
 
@@ -291,12 +305,24 @@ def register(
     initial = _checked_init(init)
     solver, description = _build(method, device, options)
     start = time.perf_counter()
-    result = run_with_init(solver, src, tgt, src_normals, tgt_normals, init=initial)
+    on_surface = surface_points(tgt, src)
+    seen, seen_normals = tgt, tgt_normals
+    if on_surface is not None:
+        seen, seen_normals = tgt[on_surface], None if tgt_normals is None else tgt_normals[on_surface]
+    if initial is not None:
+        src = src @ initial[:3, :3].T + initial[:3, 3]
+        src_normals = None if src_normals is None else src_normals @ initial[:3, :3].T
+    solve = _solve_with_scale if scale else _solve_rigid
+    result, factor, found = solve(solver, src, seen, src_normals, seen_normals, tgt, fitness_threshold, on_surface)
     seconds = time.perf_counter() - start
     transform = np.asarray(result.transform, dtype=np.float64)
-    info = {"method": description, **result.info, **quality(src, tgt, transform, fitness_threshold)}
+    warnings = [*result.info.get("warnings", ()), *found.pop("warnings")]
+    info = {"method": description, **result.info, **found, "warnings": warnings}
+    if on_surface is not None:
+        info["clutter"] = float(1.0 - on_surface.mean())
     if initial is not None:
         info["init"] = initial.tolist()
+        transform = transform @ initial
     return RegistrationResult(
         transformation=transform,
         fitness=float(info.pop("fitness")),
@@ -304,4 +330,28 @@ def register(
         confident=bool(info.pop("confident")),
         seconds=seconds,
         info=info,
+        scale=factor,
     )
+
+
+def _solve_rigid(solver, src, seen, src_normals, seen_normals, tgt, fitness_threshold, on_surface):
+    """``(result, 1.0, quality)``: ``solver`` on ``src`` and the target's clutter-free points ``seen``,
+    judged against the whole target ``tgt``."""
+    result = solver(src, seen, src_normals, seen_normals)
+    return result, 1.0, quality(src, tgt, np.asarray(result.transform, dtype=np.float64), fitness_threshold, on_surface)
+
+
+def _solve_with_scale(solver, src, seen, src_normals, seen_normals, tgt, fitness_threshold, on_surface):
+    """``(result, scale, quality)`` of the similarity (:mod:`~linereg.registration.similarity`): the rigid
+    ``solver`` on the source scaled by each guess, a similarity polish, the trusted (else best-fitting) answer."""
+    best = None
+    for guess in scale_guesses(src, seen):
+        result = solver(guess * src, seen, src_normals, seen_normals)
+        transform = similarity_polish(src, seen, with_scale(np.asarray(result.transform, dtype=np.float64), guess))
+        factor = scale_of(transform)
+        found = quality(factor * src, tgt, with_scale(transform, 1.0 / factor), fitness_threshold, on_surface)
+        rank = (found["confident"], found["fitness"])
+        if best is None or rank > best[0]:
+            info = {**result.info, "scale_guess": guess}
+            best = rank, MethodResult(transform=transform, seconds=result.seconds, info=info), factor, found
+    return best[1:]

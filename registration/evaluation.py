@@ -23,6 +23,7 @@ import numpy as np
 
 from linereg.fps import farthest_point_subset as fps
 from linereg.knn import NearestNeighbors
+from linereg.registration import trust
 
 INLIER_DISTANCES = 3.0
 """The fitness threshold of :func:`assess_registration`, in sampling distances."""
@@ -111,7 +112,12 @@ class Assessment(NamedTuple):
         inlier_rmse: RMS distance of those points.
         fitness_threshold: :data:`INLIER_DISTANCES` sampling distances, unless given.
         sampling_distance: the target's :func:`sampling_distance`.
-        confident: the pose passes the test of the module docstring.
+        confident: the pose passes every test of the module docstring.
+        tight_fitness: share of source points within :data:`TIGHT_DISTANCES` point spacings of the
+            whole target (``nan`` when the inlier test failed first).
+        chance_fitness: the same share at random placements of the source
+            (:func:`~linereg.registration.trust.chance_fitness`; ``nan`` when not measured).
+        warnings: why the pose is not trusted, or what is odd about the clouds, one line each.
     """
 
     fitness: float
@@ -119,6 +125,29 @@ class Assessment(NamedTuple):
     fitness_threshold: float
     sampling_distance: float
     confident: bool
+    tight_fitness: float = float("nan")
+    chance_fitness: float = float("nan")
+    warnings: tuple[str, ...] = ()
+
+
+def inlier_test(
+    source: np.ndarray, target: np.ndarray, transformation: np.ndarray | None = None
+) -> tuple[RegistrationQuality, float, np.ndarray, np.ndarray]:
+    """The inlier test of ``transformation (4, 4)`` on :data:`ASSESS_SOURCE_POINTS` and
+    :data:`ASSESS_TARGET_POINTS` FPS points: the quality within :data:`INLIER_DISTANCES` sampling
+    distances, the target's sampling distance, the nearest-target distances of the moved source
+    subset ``(n,)`` and that subset ``(n, 3)`` (not moved)."""
+    source = fps(np.asarray(source, dtype=np.float64), ASSESS_SOURCE_POINTS)
+    target = fps(np.asarray(target, dtype=np.float64), ASSESS_TARGET_POINTS)
+    spacing = sampling_distance(target)
+    moved = source if transformation is None else source @ transformation[:3, :3].T + transformation[:3, 3]
+    distances, _ = NearestNeighbors(target).query(moved)
+    return _inlier_quality(distances, INLIER_DISTANCES * spacing), spacing, distances, source
+
+
+def passes_inlier_test(quality: RegistrationQuality, spacing: float) -> bool:
+    """At least :data:`MIN_FITNESS` inliers at an RMS distance of at most :data:`MAX_INLIER_RMSE` sampling distances."""
+    return quality.fitness >= MIN_FITNESS and quality.inlier_rmse <= MAX_INLIER_RMSE * spacing
 
 
 def assess_registration(
@@ -126,22 +155,51 @@ def assess_registration(
     target: np.ndarray,
     transformation: np.ndarray | None = None,
     fitness_threshold: float | None = None,
+    on_surface: np.ndarray | bool | None = True,
 ) -> Assessment:
-    """Fitness, inlier RMSE and the confidence test of ``transformation (4, 4)`` mapping ``source (N, 3)``
-    onto ``target (M, 3)``, on :data:`ASSESS_SOURCE_POINTS` and :data:`ASSESS_TARGET_POINTS` FPS points.
+    """Fitness, inlier RMSE and every test of the module docstring of ``transformation (4, 4)``
+    mapping ``source (N, 3)`` onto ``target (M, 3)``.
 
     Args:
         fitness_threshold: inlier distance of the reported ``fitness`` and ``inlier_rmse``
-            (``None``: :data:`INLIER_DISTANCES` sampling distances); the test keeps its own.
+            (``None``: :data:`INLIER_DISTANCES` sampling distances); the tests keep their own.
+        on_surface: the target's clutter-free points as ``(M,)`` bool, ``None`` for all of them,
+            ``True`` to find them (:func:`~linereg.registration.trust.surface_points`).
     """
-    source = fps(np.asarray(source, dtype=np.float64), ASSESS_SOURCE_POINTS)
-    target = fps(np.asarray(target, dtype=np.float64), ASSESS_TARGET_POINTS)
-    spacing = sampling_distance(target)
-    moved = source if transformation is None else source @ transformation[:3, :3].T + transformation[:3, 3]
-    distances, _ = NearestNeighbors(target).query(moved)
-    test = _inlier_quality(distances, INLIER_DISTANCES * spacing)
-    confident = test.fitness >= MIN_FITNESS and test.inlier_rmse <= MAX_INLIER_RMSE * spacing
-    if fitness_threshold is None:
-        return Assessment(test.fitness, test.inlier_rmse, INLIER_DISTANCES * spacing, spacing, confident)
-    reported = _inlier_quality(distances, fitness_threshold)
-    return Assessment(reported.fitness, reported.inlier_rmse, fitness_threshold, spacing, confident)
+    source = np.asarray(source, dtype=np.float64)
+    target = np.asarray(target, dtype=np.float64)
+    transform = np.eye(4) if transformation is None else np.asarray(transformation, dtype=np.float64)
+    if on_surface is True:
+        on_surface = trust.surface_points(target, source)
+    surface = None if on_surface is None else target[on_surface]
+    test, spacing, distances, subset = inlier_test(source, target if surface is None else surface, transform)
+    verdict = trust.verdict(source, subset, target, surface, transform, passes_inlier_test(test, spacing))
+    warnings = _inlier_warnings(test, spacing) + verdict.warnings
+    reported = test if fitness_threshold is None else _inlier_quality(distances, fitness_threshold)
+    threshold = INLIER_DISTANCES * spacing if fitness_threshold is None else fitness_threshold
+    return Assessment(
+        reported.fitness,
+        reported.inlier_rmse,
+        threshold,
+        spacing,
+        verdict.confident,
+        verdict.tight_fitness,
+        verdict.chance_fitness,
+        warnings,
+    )
+
+
+def _inlier_warnings(test: RegistrationQuality, spacing: float) -> tuple[str, ...]:
+    """Why the inlier test fails, if it does."""
+    if test.fitness < MIN_FITNESS:
+        return (
+            f"only {100 * test.fitness:.1f} % of the source lies within {INLIER_DISTANCES:g} sampling distances of the "
+            "target: no overlap found (too little overlap, another object, or clouds in different units)",
+        )
+    if test.inlier_rmse > MAX_INLIER_RMSE * spacing:
+        return (
+            f"the inliers lie {test.inlier_rmse / spacing:.2f} sampling distances from the target (at most "
+            f"{MAX_INLIER_RMSE:g} when right): the surfaces do not coincide (a wrong pose, another object, a mirror "
+            "image or heavy noise)",
+        )
+    return ()

@@ -27,7 +27,7 @@ import numpy as np
 
 from linereg.fps import farthest_point_subset as fps
 from linereg.knn import NearestNeighbors
-from linereg.registration.evaluation import assess_registration, point_spacing
+from linereg.registration.evaluation import inlier_test, passes_inlier_test, point_spacing
 from linereg.registration.poses import Poses, as_matrices, rotation_gap_deg
 from linereg.registration.welsch import fixed_scale_cost, welsch_irls
 
@@ -77,10 +77,11 @@ def dense_costs(poses: Poses, src: np.ndarray, dense: DenseTarget) -> np.ndarray
 
 
 def dense_confident(poses: Poses, best: int, src: np.ndarray, dense: DenseTarget) -> bool:
-    """Whether candidate ``best`` passes the confidence test of :func:`linereg.register`
-    (:func:`~linereg.registration.evaluation.assess_registration`) against the dense target."""
+    """Whether candidate ``best`` passes the inlier test of :func:`linereg.register`
+    (:func:`~linereg.registration.evaluation.inlier_test`) against the dense target."""
     transform = as_matrices((poses[0][best : best + 1], poses[1][best : best + 1]))[0]
-    return assess_registration(src, dense.points, transform).confident
+    quality, spacing, _, _ = inlier_test(src, dense.points, transform)
+    return passes_inlier_test(quality, spacing)
 
 
 def dense_doubt(

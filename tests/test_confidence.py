@@ -14,13 +14,15 @@ from linereg.registration.evaluation import (
 
 
 def _surface(count: int, seed: int) -> np.ndarray:
-    """``count`` random points of the unit sphere's upper half and a plane under it (a scene-like surface)."""
+    """``count`` random points of an ellipsoid's upper half on a rectangle, off its centre (a
+    scene-like surface with a unique pose)."""
     rng = np.random.default_rng(seed)
-    sphere = rng.normal(size=(count // 2, 3))
-    sphere /= np.linalg.norm(sphere, axis=1, keepdims=True)
-    sphere[:, 2] = np.abs(sphere[:, 2])
-    plane = np.column_stack([rng.uniform(-2, 2, (count - len(sphere), 2)), np.zeros(count - len(sphere))])
-    return np.concatenate([sphere, plane])
+    dome = rng.normal(size=(count // 2, 3))
+    dome /= np.linalg.norm(dome, axis=1, keepdims=True)
+    dome[:, 2] = np.abs(dome[:, 2])
+    dome = dome * [1.0, 0.6, 0.8] + [0.7, 0.3, 0.0]
+    floor = np.column_stack([rng.uniform([-2, -1], [3, 2], (count - len(dome), 2)), np.zeros(count - len(dome))])
+    return np.concatenate([dome, floor])
 
 
 def _moved(transform: np.ndarray, points: np.ndarray) -> np.ndarray:

@@ -1,0 +1,293 @@
+"""Whether a fit could be chance, whether its pose is determined, and whether the clouds share units.
+
+An inlier share alone is fooled three ways: a target so dense that any placement of the source
+lies near its points (clutter, or a target in smaller units: millimetres against metres), a
+surface on which the source slides (a plane, a cylinder, a sphere) and a shape that maps onto
+itself (a symmetric object). :func:`~linereg.registration.evaluation.assess_registration` asks
+each question with a function of this module:
+
+* :func:`chance_fitness`: the share of source points within a tight radius of the target at the
+  answer, against the same share at random placements of the source on the target;
+* :func:`free_motions`: the rigid motions the fit does not constrain, from the eigenvalues of the
+  6x6 point-to-plane information matrix of the inliers (Gelfand, Ikemoto, Rusinkiewicz and Levoy,
+  *Geometrically stable sampling for the ICP algorithm*, 3DIM 2003);
+* :func:`symmetric_rival`: the answer turned by 90, 180 and 270 degrees about the inliers'
+  principal axes, which fits as well when the shape is symmetric;
+* :func:`scale_mismatch`: the clouds' point spacings, which differ by the unit factor;
+* :func:`surface_points`: the target points as densely sampled as the source (clutter left out).
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import numpy as np
+
+from linereg.knn import NearestNeighbors
+
+CHANCE_PLACEMENTS = 32
+"""Random placements of the source that :func:`chance_fitness` measures."""
+CHANCE_QUANTILE = 0.9
+"""The placements' fitness quantile that stands for chance."""
+FREE_EIGENVALUE = 0.02
+"""An eigenvalue of the normalised information matrix below this share of the largest is a free motion."""
+RIVAL_FITNESS = 0.9
+"""A turned answer that keeps this share of the answer's tight fitness is a rival."""
+SCALE_MISMATCH = 3.0
+"""Point-spacing ratio from which the clouds are taken to be in different units."""
+NORMAL_NEIGHBOURS = 10
+"""Target points of the plane fitted at each inlier (its normal)."""
+SURFACE_NEIGHBOURS = 8
+"""Neighbours whose distance measures a point's local density in :func:`surface_points`."""
+SURFACE_DENSITY = 1.5
+"""A target point is on a surface when its density distance is within this factor of the source's."""
+SURFACE_SHARE = (0.02, 0.8)
+"""The surface's share of the target between which the rest is clutter (else the target is kept whole)."""
+SURFACE_FLOOR = 1.2
+"""The densest 5 % of the target lie within this factor of the source's density distance when
+part of it is sampled as the source is (a target in other units is not)."""
+
+
+def spacing_of(points: np.ndarray, sample: int = 20000, seed: int = 0) -> float:
+    """The sampling distance of ``points (N, 3)`` at its full density: the median distance from a
+    point to its nearest other point, on a random ``sample`` (scaled by ``sqrt(sample / N)``, the
+    spacing of a surface sampled ``N / sample`` times more densely)."""
+    rng = np.random.default_rng(seed)
+    subset = points if len(points) <= sample else points[rng.choice(len(points), sample, replace=False)]
+    distances, _ = NearestNeighbors(subset).query(subset, k=2)
+    return float(np.median(distances[:, 1]) * np.sqrt(len(subset) / len(points)))
+
+
+def random_rotations(count: int, rng: np.random.Generator) -> np.ndarray:
+    """``(count, 3, 3)`` rotations uniform over SO(3) (normalised Gaussian quaternions)."""
+    q = rng.normal(size=(count, 4))
+    q /= np.linalg.norm(q, axis=1, keepdims=True)
+    w, x, y, z = q.T
+    return np.stack(
+        [
+            np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)], axis=-1),
+            np.stack([2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)], axis=-1),
+            np.stack([2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)], axis=-1),
+        ],
+        axis=1,
+    )
+
+
+def chance_fitness(source: np.ndarray, target: NearestNeighbors, radius: float, seed: int = 0) -> float:
+    """The share of ``source (N, 3)`` points within ``radius`` of the target that random placements
+    reach: the :data:`CHANCE_QUANTILE` of :data:`CHANCE_PLACEMENTS` placements, each a uniform random
+    rotation about the source's centroid and that centroid moved onto a random target point."""
+    rng = np.random.default_rng(seed)
+    rotations = random_rotations(CHANCE_PLACEMENTS, rng)
+    anchors = target.points[rng.integers(len(target), size=CHANCE_PLACEMENTS)]
+    centred = source - source.mean(axis=0)
+    placed = np.einsum("kij,nj->kni", rotations, centred) + anchors[:, None, :]
+    distances, _ = target.query(placed, distance_upper_bound=radius)
+    return float(np.quantile((distances <= radius).mean(axis=1), CHANCE_QUANTILE))
+
+
+def target_normals(points: np.ndarray, target: NearestNeighbors) -> np.ndarray:
+    """``(N, 3)`` unit normals of the target's surface near ``points (N, 3)``: the least direction
+    of its :data:`NORMAL_NEIGHBOURS` nearest points."""
+    _, idx = target.query(points, k=NORMAL_NEIGHBOURS)
+    neighbours = target.points[idx]
+    centred = neighbours - neighbours.mean(axis=1, keepdims=True)
+    _, vectors = np.linalg.eigh(np.einsum("nki,nkj->nij", centred, centred))
+    return vectors[:, :, 0]
+
+
+class FreeMotion(NamedTuple):
+    """A rigid motion the fit does not constrain: ``kind`` ``"rotation"`` (about ``axis`` through
+    ``center``) or ``"translation"`` (along ``axis``), and its eigenvalue's share of the largest."""
+
+    kind: str
+    axis: np.ndarray
+    center: np.ndarray
+    share: float
+
+
+def free_motions(inliers: np.ndarray, target: NearestNeighbors) -> list[FreeMotion]:
+    """The motions of the moved source ``inliers (N, 3)`` that leave their point-to-plane distances
+    to the target unchanged to first order: eigenvectors of the 6x6 information matrix
+    ``sum J_i^T J_i``, ``J_i = [((p_i - c) / L) x n_i, n_i]`` (``c`` the inliers' centroid, ``L`` their
+    RMS radius), whose eigenvalue is below :data:`FREE_EIGENVALUE` of the largest."""
+    if len(inliers) < NORMAL_NEIGHBOURS:
+        return []
+    normals = target_normals(inliers, target)
+    center = inliers.mean(axis=0)
+    arm = inliers - center
+    length = max(float(np.sqrt(np.mean(np.sum(arm**2, axis=1)))), 1e-300)
+    jacobian = np.concatenate([np.cross(arm / length, normals), normals], axis=1)
+    values, vectors = np.linalg.eigh(jacobian.T @ jacobian / len(inliers))
+    motions = []
+    for value, vector in zip(values, vectors.T, strict=True):
+        share = float(value / max(values[-1], 1e-300))
+        if share >= FREE_EIGENVALUE:
+            break
+        rotation, shift = vector[:3], vector[3:]
+        kind = "rotation" if np.linalg.norm(rotation) >= np.linalg.norm(shift) else "translation"
+        axis = rotation if kind == "rotation" else shift
+        motions.append(FreeMotion(kind, axis / np.linalg.norm(axis), center, share))
+    return motions
+
+
+def describe_free(motions: list[FreeMotion]) -> str:
+    """A warning naming the free motions (``"rotation about the plane's normal"`` for a plane)."""
+    kinds = sorted(motion.kind for motion in motions)
+    rotations = [motion for motion in motions if motion.kind == "rotation"]
+    if kinds == ["rotation", "translation", "translation"]:
+        axis = np.round(rotations[0].axis, 2).tolist()
+        return (
+            f"the pose is not unique: the overlap is planar; rotation about its normal {axis} "
+            "and sliding within it are free"
+        )
+    parts = [
+        f"rotation about {np.round(motion.axis, 2).tolist()}"
+        if motion.kind == "rotation"
+        else f"translation along {np.round(motion.axis, 2).tolist()}"
+        for motion in motions
+    ]
+    return f"the pose is not unique: {' and '.join(parts)} {'is' if len(parts) == 1 else 'are'} free"
+
+
+def turned(transform: np.ndarray, inliers: np.ndarray) -> np.ndarray:
+    """``(9, 4, 4)``: ``transform`` followed by turns of 90, 180 and 270 degrees about each principal
+    axis of the moved ``inliers (N, 3)`` through their centroid."""
+    center = inliers.mean(axis=0)
+    _, axes = np.linalg.eigh(np.cov((inliers - center).T))
+    turns = []
+    for axis in axes.T:
+        cross = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
+        for angle in (0.5 * np.pi, np.pi, 1.5 * np.pi):
+            rotation = np.eye(3) + np.sin(angle) * cross + (1 - np.cos(angle)) * cross @ cross
+            turn = np.eye(4)
+            turn[:3, :3], turn[:3, 3] = rotation, center - rotation @ center
+            turns.append(turn @ transform)
+    return np.stack(turns)
+
+
+def tight_fitness(source: np.ndarray, target: NearestNeighbors, transforms: np.ndarray, radius: float) -> np.ndarray:
+    """``(K,)`` shares of ``source (N, 3)`` points within ``radius`` of the target under each of
+    ``transforms (K, 4, 4)``."""
+    moved = np.einsum("kij,nj->kni", transforms[:, :3, :3], source) + transforms[:, None, :3, 3]
+    distances, _ = target.query(moved, distance_upper_bound=radius)
+    return (distances <= radius).mean(axis=1)
+
+
+def symmetric_rival(
+    source: np.ndarray, target: NearestNeighbors, transform: np.ndarray, inliers: np.ndarray, radius: float
+) -> float | None:
+    """The angle (degrees) of a turned answer (:func:`turned`) whose tight fitness is at least
+    :data:`RIVAL_FITNESS` of the answer's, or ``None``."""
+    if len(inliers) < 4:
+        return None
+    rivals = turned(transform, inliers)
+    own = float(tight_fitness(source, target, transform[None], radius)[0])
+    fits = tight_fitness(source, target, rivals, radius)
+    if own <= 0 or fits.max() < RIVAL_FITNESS * own:
+        return None
+    return float([90, 180, 270][int(fits.argmax()) % 3])
+
+
+def scale_mismatch(source_spacing: float, target_spacing: float) -> str | None:
+    """A warning when the clouds' point spacings differ by :data:`SCALE_MISMATCH` or more."""
+    ratio = target_spacing / max(source_spacing, 1e-300)
+    hint = "different units? try scale=true"
+    if ratio >= SCALE_MISMATCH:
+        return f"the target's points are about {ratio:.3g}x further apart than the source's: {hint}"
+    if ratio <= 1.0 / SCALE_MISMATCH:
+        return f"the source's points are about {1 / ratio:.3g}x further apart than the target's: {hint}"
+    return None
+
+
+def surface_points(target: np.ndarray, source: np.ndarray, sample: int = 5000, seed: int = 0) -> np.ndarray | None:
+    """``(M,)`` bool: the points of ``target (M, 3)`` sampled at least about as densely as ``source
+    (N, 3)``, when they are between :data:`SURFACE_SHARE` of it (the rest is clutter), else ``None``.
+
+    A point's density distance is the distance to its :data:`SURFACE_NEIGHBOURS`-th nearest other
+    point; a target point is kept when its distance is at most :data:`SURFACE_DENSITY` times the
+    median of the source's (uniform clutter in a volume is far sparser than a scanned surface).
+    The share, and whether the target's densest points match the source's density at all
+    (:data:`SURFACE_FLOOR`), are first estimated on a random ``sample`` of the target.
+    """
+    rng = np.random.default_rng(seed)
+    k = SURFACE_NEIGHBOURS + 1
+    src_sample = source if len(source) <= sample else source[rng.choice(len(source), sample, replace=False)]
+    reference = float(np.median(NearestNeighbors(source).query(src_sample, k=k)[0][:, -1]))
+    index = NearestNeighbors(target)
+    probe = target if len(target) <= sample else target[rng.choice(len(target), sample, replace=False)]
+    density = index.query(probe, k=k)[0][:, -1]
+    share = float((density <= SURFACE_DENSITY * reference).mean())
+    if not SURFACE_SHARE[0] <= share < SURFACE_SHARE[1] or np.quantile(density, 0.05) > SURFACE_FLOOR * reference:
+        return None
+    return index.query(target, k=k)[0][:, -1] <= SURFACE_DENSITY * reference
+
+
+TIGHT_DISTANCES = 1.5
+"""Radius of the chance test, in point spacings of the target's surface (:func:`spacing_of`)."""
+CHANCE_FACTOR = 2.0
+"""A confident answer's tight fitness is at least this multiple of chance's ..."""
+CHANCE_MARGIN = 0.05
+"""... plus this share."""
+UNITS_HINT = 1.5
+"""Point-spacing ratio from which a pose that is not trusted gets the hint to try ``scale=true``."""
+
+
+class Verdict(NamedTuple):
+    """Result of :func:`verdict`: ``confident``, the answer's tight fitness and chance's (``nan``
+    when not measured) and the warnings, one line each."""
+
+    confident: bool
+    tight_fitness: float
+    chance_fitness: float
+    warnings: tuple[str, ...]
+
+
+def verdict(
+    source: np.ndarray,
+    subset: np.ndarray,
+    target: np.ndarray,
+    surface: np.ndarray | None,
+    transform: np.ndarray,
+    passed: bool,
+) -> Verdict:
+    """The tests of this module on ``transform (4, 4)`` mapping ``source (N, 3)`` (``subset (n, 3)``
+    of it measured) onto ``target (M, 3)``, whose clutter-free ``surface`` (:func:`surface_points`;
+    ``None``: all of it) gave the inlier test its result ``passed``. Confident: ``passed``, a tight
+    fitness of at least :data:`CHANCE_FACTOR` times chance's plus :data:`CHANCE_MARGIN`, no free
+    motion and no symmetric rival."""
+    surface = target if surface is None else surface
+    source_spacing, target_spacing = spacing_of(source), spacing_of(surface)
+    mismatch = scale_mismatch(source_spacing, target_spacing)
+    notes = [] if mismatch is None else [mismatch]
+    ratio = max(target_spacing / source_spacing, source_spacing / target_spacing)
+    if not passed:
+        if mismatch is None and ratio >= UNITS_HINT:
+            notes.append(
+                f"the clouds' point spacings differ {ratio:.2g}x: different units or resolutions? try scale=true"
+            )
+        return Verdict(False, float("nan"), float("nan"), tuple(notes))
+    index = NearestNeighbors(target)
+    radius = TIGHT_DISTANCES * target_spacing
+    own = float(tight_fitness(subset, index, transform[None], radius)[0])
+    chance = chance_fitness(subset, index, radius)
+    failures = []
+    if own < CHANCE_FACTOR * chance + CHANCE_MARGIN:
+        failures.append(
+            f"the fit is no better than chance: {100 * own:.0f} % of the source within {TIGHT_DISTANCES:g} point "
+            f"spacings of the target, {100 * chance:.0f} % at random placements (a cluttered or much denser target?)"
+        )
+        return Verdict(False, own, chance, tuple(notes + failures))
+    moved = subset @ transform[:3, :3].T + transform[:3, 3]
+    distances, _ = index.query(moved, distance_upper_bound=radius)
+    inliers = moved[distances <= radius]
+    motions = free_motions(inliers, index if surface is target else NearestNeighbors(surface))
+    if motions:
+        failures.append(describe_free(motions))
+    rival = symmetric_rival(subset, index, transform, inliers, radius)
+    if rival is not None:
+        failures.append(
+            f"the pose is not unique: the answer turned {rival:.0f} degrees about a principal axis of the overlap "
+            "fits as well (a symmetric shape)"
+        )
+    return Verdict(not failures, own, chance, tuple(notes + failures))

@@ -33,7 +33,12 @@ RECIPES = ("cpu", "paper")
 PROTOCOLS = ("none", "airplane", "human", "real", "procedural")
 EXPERIMENTS = ("none", *(f"{b}_{loss}" for b in ("rpm", "dcp", "fmr") for loss in ("gt", "cd", "cdw", "ours")))
 # Fixed paths, so that resolved values do not depend on the checkout or the environment.
-PATHS = ["paths.root_dir=/ROOT", "paths.output_dir=/ROOT/outputs/run"]
+PATHS = [
+    "paths.root_dir=/ROOT",
+    "paths.output_dir=/ROOT/outputs/run",
+    "paths.data_dir=/ROOT/data",
+    "paths.shared_data_dir=/ROOT/../shared/data",
+]
 ENVIRONMENT = ("LINEREG_DATA", "LINEREG_SHARED_DATA")
 DROPPED = ("hydra", "paths")
 
@@ -310,7 +315,7 @@ TRAINING_GROUPS = (
 # Interpolations a training file may hold: links to the run's own values, never to a recipe or to
 # another component's choice (the defaults list names specialisation files instead).
 ALLOWED_INTERPOLATIONS = re.compile(
-    r"\$\{(loss\.\w+|trainer\.(num_points|monitor)|seed|paths\.\w+|oc\.env:\w+,\$\{paths\.\w+\}/[\w./]+"
+    r"\$\{(loss\.\w+|trainer\.(num_points|monitor)|seed|paths\.\w+|linereg\.data_folder:\w+,[\w./]+"
     r"|hydra:runtime\.[\w.]+)\}"
 )
 

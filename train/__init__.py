@@ -14,6 +14,8 @@ import os
 from pathlib import Path
 from typing import Any
 
+import linereg.paths  # noqa: F401  (registers the configs' ${linereg.data_folder:...} resolver)
+
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 CONFIG_DIR = str(Path(__file__).resolve().parent.parent / "configs")

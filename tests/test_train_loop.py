@@ -65,7 +65,14 @@ def test_fast_dev_run_of_every_model(tmp_path, experiment):
         assert np.isfinite(metrics[key]), key
     checkpoint = load_checkpoint(result["last_checkpoint"])
     # 4 training pairs: the easy stage (2 pairs) and the half stage take 1 step, the last 2.
-    assert checkpoint["progress"] == {"epoch": 3, "global_step": 4, "stage": 2, "stage_name": "full"}
+    assert checkpoint["progress"] == {
+        "epoch": 3,
+        "batch": 0,
+        "global_step": 4,
+        "stage": 2,
+        "stage_name": "full",
+        "bad_steps": 0,
+    }
     assert checkpoint["config"]["task_name"] == "tiny"
     assert (tmp_path / "checkpoints" / "best.pt").is_file()
     assert (tmp_path / "evaluation" / "metrics.json").is_file()
@@ -292,7 +299,14 @@ def test_untrained_run_evaluates_the_initial_weights_like_a_trained_run(tmp_path
         "epoch": 0,
     }
     state = load_checkpoint(run / "checkpoints" / "last.pt")
-    assert state["progress"] == {"epoch": 0, "global_step": 0, "stage": None, "stage_name": None}
+    assert state["progress"] == {
+        "epoch": 0,
+        "batch": 0,
+        "global_step": 0,
+        "stage": None,
+        "stage_name": None,
+        "bad_steps": 0,
+    }
     assert not (run / "checkpoints" / "best.pt").exists()
     assert not any("train/loss" in record for record in read_scalars(run))
     metrics = result["metrics"]

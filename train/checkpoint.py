@@ -1,4 +1,4 @@
-"""Writing checkpoints during training: atomic saves, resume with fallback, RNG and generator states.
+"""Writing checkpoints during training: atomic saves, resume with fallback.
 
 A checkpoint is a ``torch.save`` dict holding only tensors and plain Python values, so it loads
 with ``torch.load(weights_only=True)``::
@@ -7,13 +7,16 @@ with ``torch.load(weights_only=True)``::
     config              the resolved run config (model, loss, dataset, curriculum, ...)
     model               model state dict
     optimizer, scheduler, scaler
-    progress            {epoch: next epoch to run, global_step, stage, stage_name}
+    progress            {epoch: the epoch to run (or to finish), batch: its batches already run
+                        (0 at the end of an epoch), global_step, stage, stage_name, bad_steps}
+    epoch_sums          sums of the training values of the unfinished epoch (None at an epoch's end)
     best                {metric, value, epoch}
-    rng                 python / numpy / torch (CPU and CUDA) generator states
-    generators          states of the torch.Generator attributes of the loss (line sampling)
-    metrics             validation metrics of the epoch
+    initial_metrics     validation of the initial weights (``val_initial/...``)
+    metrics             validation metrics of the epoch (empty in a step checkpoint)
 
-Runs keep ``<run>/checkpoints/last.pt`` (every epoch) and ``best.pt`` (best monitored metric).
+No generator state is stored: a run's randomness is derived from its seed and position
+(:mod:`linereg.train.randomness`). Runs keep ``<run>/checkpoints/last.pt`` (every epoch, and every
+``trainer.checkpoint_every_steps`` steps) and ``best.pt`` (best monitored metric).
 A file that cannot be read (truncated, empty, garbage) raises :class:`CorruptCheckpointError`
 naming it (:func:`linereg.checkpoint.load_checkpoint` reads one);
 :func:`load_resume_checkpoint` falls back to the newest readable checkpoint of the same folder with a warning.
@@ -22,16 +25,13 @@ naming it (:func:`linereg.checkpoint.load_checkpoint` reads one);
 from __future__ import annotations
 
 import os
-import random
 import re
 import warnings
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 import torch
-from torch import nn
 
 from linereg.checkpoint import (
     BEST,
@@ -42,6 +42,7 @@ from linereg.checkpoint import (
     find_checkpoint,
     load_checkpoint,
 )
+from linereg.train.faults import kill_point
 
 # The temporary file of an unfinished save: ``.<name>.<pid>.tmp`` beside its destination.
 _TEMPORARY = re.compile(r"^\..+\.(?P<pid>\d+)\.tmp$")
@@ -71,6 +72,7 @@ def save_checkpoint(state: Mapping[str, Any], path: str | Path) -> Path:
             torch.save({"format": FORMAT, "version": VERSION, **state}, handle)
             handle.flush()
             os.fsync(handle.fileno())
+        kill_point("checkpoint")
         os.replace(temporary, path)
     finally:
         temporary.unlink(missing_ok=True)
@@ -160,65 +162,3 @@ def load_resume_checkpoint(path: str | Path, map_location: str | torch.device = 
     raise CorruptCheckpointError(
         "no readable checkpoint to resume from:\n  " + "\n  ".join(failures) + "\nstart a new run or restore a backup"
     )
-
-
-def rng_state() -> dict[str, Any]:
-    """States of the python, numpy and torch (CPU and CUDA) global generators."""
-    numpy_state = np.random.get_state(legacy=False)  # noqa: NPY002 (the global generator, as libraries use it)
-    state = {
-        "python": random.getstate(),
-        "numpy": {
-            "key": torch.from_numpy(numpy_state["state"]["key"].astype(np.int64)),
-            "pos": int(numpy_state["state"]["pos"]),
-            "has_gauss": int(numpy_state["has_gauss"]),
-            "gauss": float(numpy_state["gauss"]),
-        },
-        "torch": torch.get_rng_state(),
-    }
-    if torch.cuda.is_available():
-        state["cuda"] = torch.cuda.get_rng_state_all()
-    return state
-
-
-def restore_rng_state(state: Mapping[str, Any]) -> None:
-    """Restore the generators saved by :func:`rng_state` (CUDA only when available)."""
-    version, internal, gauss = state["python"]
-    random.setstate((version, tuple(internal), gauss))
-    numpy_state = state["numpy"]
-    np.random.set_state(  # noqa: NPY002
-        {
-            "bit_generator": "MT19937",
-            "state": {"key": numpy_state["key"].numpy().astype(np.uint32), "pos": numpy_state["pos"]},
-            "has_gauss": numpy_state["has_gauss"],
-            "gauss": numpy_state["gauss"],
-        }
-    )
-    torch.set_rng_state(state["torch"])
-    if "cuda" in state and torch.cuda.is_available():
-        torch.cuda.set_rng_state_all(state["cuda"])
-
-
-def _generators(module: nn.Module) -> dict[str, torch.Generator]:
-    """Every ``torch.Generator`` attribute of ``module`` and its submodules, by dotted name."""
-    found = {}
-    for prefix, submodule in module.named_modules():
-        for attribute, value in vars(submodule).items():
-            if isinstance(value, torch.Generator):
-                found[f"{prefix}.{attribute}" if prefix else attribute] = value
-    return found
-
-
-def generator_states(module: nn.Module) -> dict[str, torch.Tensor]:
-    """States of the generators a module owns (e.g. the line sampler of the line loss)."""
-    return {name: generator.get_state() for name, generator in _generators(module).items()}
-
-
-def restore_generator_states(module: nn.Module, states: Mapping[str, torch.Tensor]) -> None:
-    """Restore :func:`generator_states`; the names must match the module's generators."""
-    generators = _generators(module)
-    if set(generators) != set(states):
-        raise ValueError(
-            f"the checkpoint holds generator states {sorted(states)} but the loss owns {sorted(generators)}"
-        )
-    for name, state in states.items():
-        generators[name].set_state(state)

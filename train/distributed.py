@@ -29,6 +29,7 @@ from torch.utils.data import DataLoader, Dataset, DistributedSampler
 
 from linereg.datasets import collate_pairs
 from linereg.structures import RegistrationOutput
+from linereg.train.randomness import loader_generator
 
 AMP_DTYPES = {"bf16": torch.bfloat16, "fp16": torch.float16}
 
@@ -200,11 +201,12 @@ def make_loader(
     epoch: int = 0,
     num_workers: int = 0,
     ctx: DistContext | None = None,
+    skip_batches: int = 0,
 ) -> DataLoader:
     """A loader of :class:`~linereg.structures.PairBatch` es over this rank's shard.
 
-    The order is a pure function of ``(seed, epoch)``, so a resumed run sees the same batches
-    as an uninterrupted one.
+    The order and the workers' seeds are pure functions of ``(seed, epoch, rank)``, so a resumed
+    run sees the same batches as an uninterrupted one.
 
     Args:
         dataset: pairs.
@@ -215,6 +217,7 @@ def make_loader(
         epoch: epoch number (changes the shuffle).
         num_workers: loader worker processes.
         ctx: distributed context (``None``: one process, the whole dataset).
+        skip_batches: leave out the epoch's first batches (those a resumed step checkpoint ran).
     """
     ctx = ctx or DistContext()
     sampler = DistributedSampler(
@@ -224,11 +227,12 @@ def make_loader(
     return DataLoader(
         dataset,
         batch_size=batch_size,
-        sampler=sampler,
+        sampler=list(sampler)[skip_batches * batch_size :],
         num_workers=num_workers,
         collate_fn=functools.partial(collate_pairs, num_points=num_points),
         pin_memory=ctx.device.type == "cuda",
         persistent_workers=False,
+        generator=loader_generator(seed, epoch, ctx.rank),
     )
 
 

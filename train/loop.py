@@ -19,9 +19,12 @@ errors of the iterate the config's ``iterate`` block chooses (:mod:`linereg.trai
 error otherwise): the initial weights are validated, written as ``last.pt`` and evaluated
 exactly like a trained run's, the control cell "untrained network" of a results table.
 
-Checkpoints are written at the end of every epoch, atomically, so an interrupted run (Ctrl-C,
-``kill``) loses at most the epoch in progress; ``resume=true`` continues exactly: same data
-order (a function of seed and epoch), optimizer, scheduler, curriculum stage and generators.
+Checkpoints are written atomically at the end of every epoch (and every
+``trainer.checkpoint_every_steps`` steps), so a run killed at any moment (Ctrl-C, ``kill -9``, a
+pre-empted job) loses at most the steps since the last one; ``resume=true`` continues it, in a
+new process, on exactly the uninterrupted run's trajectory: the checkpoint holds the weights,
+optimizer, scheduler, curriculum stage and the sums of an unfinished epoch, and everything
+random is derived from the seed and the position (:mod:`linereg.train.randomness`).
 """
 
 from __future__ import annotations
@@ -29,16 +32,12 @@ from __future__ import annotations
 import gc
 import logging
 import math
-import os
-import random
 import time
 import warnings
-from collections import defaultdict
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 import torch
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig, OmegaConf
@@ -51,17 +50,12 @@ from linereg.losses import build_loss, set_training_progress
 from linereg.models import MODELS, upgrade_run_config
 from linereg.registration.iterates import IterateRule
 from linereg.structures import LossOutput, PairBatch, RegistrationOutput
-from linereg.train import distributed
-from linereg.train.checkpoint import (
-    generator_states,
-    load_resume_checkpoint,
-    restore_generator_states,
-    restore_rng_state,
-    rng_state,
-    save_checkpoint,
-)
+from linereg.train import distributed, randomness
+from linereg.train.checkpoint import load_resume_checkpoint, save_checkpoint
 from linereg.train.curriculum import Curriculum, Stage
 from linereg.train.diagnostics import describe_non_finite_loss
+from linereg.train.epoch import EpochSums
+from linereg.train.faults import kill_point
 from linereg.train.figures import registration_figure
 from linereg.train.logging import RunLogger
 from linereg.train.optim import OPTIMIZERS, SCHEDULERS
@@ -70,18 +64,6 @@ from linereg.train.settings import TrainerSettings
 from linereg.train.validation import Monitor, RunEvaluator, write_run_metrics
 
 log = logging.getLogger(__name__)
-
-
-def seed_everything(seed: int, deterministic: bool = False) -> None:
-    """Seed python, numpy and torch; optionally ask torch for deterministic kernels."""
-    random.seed(seed)
-    np.random.seed(seed)  # noqa: NPY002 (seeds libraries that draw from the global generator)
-    torch.manual_seed(seed)
-    if deterministic:
-        os.environ.setdefault("CUBLAS_WORKSPACE_CONFIG", ":4096:8")
-        torch.use_deterministic_algorithms(True, warn_only=True)
-        torch.backends.cudnn.benchmark = False
-        torch.backends.cudnn.deterministic = True
 
 
 class Trainer:
@@ -97,6 +79,7 @@ class Trainer:
     def __init__(self, config: dict[str, Any], run_dir: Path, ctx: distributed.DistContext, loss: nn.Module) -> None:
         self.config = config
         self.run_dir = run_dir
+        self.checkpoints = run_dir / CHECKPOINT_DIR
         self.ctx = ctx
         self.settings = TrainerSettings.from_config(config["trainer"])
         self.device = ctx.device
@@ -118,17 +101,19 @@ class Trainer:
         self.stage_index: int | None = None
         self.monitor = Monitor(self.settings.monitor, self.settings.monitor_mode)
         iterate = IterateRule.from_config(config.get("iterate"))
-        self.evaluator = RunEvaluator(self.model, self.loss, self.settings, self.device, self.amp, iterate)
+        self.evaluator = RunEvaluator(self.model, self.loss, self.settings, self.device, self.amp, iterate, self.seed)
         self.bad_steps = 0
+        self.epoch_sums: EpochSums | None = None  # the unfinished epoch of a resumed step checkpoint
         self.initial_metrics: dict[str, float] = {}
         self.train_data = None
         self.val_data = None
         self.logger: RunLogger | None = None
 
     # ----------------------------------------------------------------------------- state
-    def state_dict(self, metrics: Mapping[str, float]) -> dict[str, Any]:
-        """Everything needed to continue exactly (see :mod:`linereg.train.checkpoint`); before the first
-        stage (an untrained run) ``progress.stage`` and ``progress.stage_name`` are ``None``."""
+    def state_dict(self, metrics: Mapping[str, float], epoch_sums: EpochSums | None = None) -> dict[str, Any]:
+        """Everything needed to continue exactly (see :mod:`linereg.train.checkpoint`): at the end of
+        an epoch, or (``epoch_sums``) after that many batches of epoch ``self.epoch``. Before the
+        first stage (an untrained run) ``progress.stage`` and ``progress.stage_name`` are ``None``."""
         stage = None if self.stage_index is None else self.curriculum.stages[self.stage_index]
         return {
             "config": self.config,
@@ -138,13 +123,15 @@ class Trainer:
             "scaler": self.scaler.state_dict(),
             "progress": {
                 "epoch": self.epoch,
+                "batch": 0 if epoch_sums is None else epoch_sums.batches,
                 "global_step": self.global_step,
                 "stage": self.stage_index,
                 "stage_name": None if stage is None else stage.name,
+                "bad_steps": self.bad_steps,
             },
+            "epoch_sums": None if epoch_sums is None else epoch_sums.state(),
             "best": self.monitor.state(),
-            "rng": rng_state(),
-            "generators": generator_states(self.loss),
+            "initial_metrics": dict(self.initial_metrics),
             "metrics": dict(metrics),
         }
 
@@ -156,7 +143,11 @@ class Trainer:
         self.scaler.load_state_dict(state["scaler"])
         self.epoch = int(progress["epoch"])
         self.global_step = int(progress["global_step"])
+        self.bad_steps = int(progress.get("bad_steps", 0))
         self.monitor.load(state["best"])
+        self.initial_metrics = dict(state.get("initial_metrics") or {})
+        if state.get("epoch_sums") is not None:
+            self.epoch_sums = EpochSums.from_state(state["epoch_sums"])
         if progress["stage"] is not None:  # None: saved before the first stage (an untrained run)
             self.stage_index = int(progress["stage"])
             stage = self.curriculum.stages[self.stage_index]
@@ -174,8 +165,6 @@ class Trainer:
                     group["lr"], group["initial_lr"] = saved["lr"], saved.get("initial_lr", saved["lr"])
                 if self.scheduler is not None and state["scheduler"] is not None:
                     self.scheduler.load_state_dict(state["scheduler"])
-        restore_rng_state(state["rng"])
-        restore_generator_states(self.loss, state["generators"])
 
     # ----------------------------------------------------------------------------- stages
     def _enter_stage(self, index: int, *, resumed: bool = False) -> None:
@@ -300,8 +289,10 @@ class Trainer:
         return None
 
     def _train_epoch(self) -> dict[str, float]:
-        """One epoch over this rank's shard of the stage's training data."""
+        """One epoch over this rank's shard of the stage's training data (its remaining batches
+        when a step checkpoint was resumed); the means of the logged values."""
         stage = self.curriculum.stages[self.stage_index]
+        sums, self.epoch_sums = self.epoch_sums or EpochSums(), None
         loader = distributed.make_loader(
             self.train_data,
             batch_size=self.settings.batch_size,
@@ -311,16 +302,15 @@ class Trainer:
             epoch=self.epoch,
             num_workers=self.settings.num_workers,
             ctx=self.ctx,
+            skip_batches=sums.batches,
         )
         self.ddp_model.train()
-        totals: dict[str, float] = defaultdict(float)
-        counts: dict[str, int] = defaultdict(int)  # per key: term gradient norms come on logging steps only
-        steps = done = 0
-        total_steps = len(loader)
+        total_batches = sums.batches + len(loader)
         if self.settings.max_steps_per_epoch is not None:
-            total_steps = min(total_steps, self.settings.max_steps_per_epoch)
+            total_batches = min(total_batches, self.settings.max_steps_per_epoch)
         bar = tqdm(
-            total=total_steps,
+            total=total_batches,
+            initial=sums.batches,
             desc=f"epoch {self.epoch + 1}/{self.curriculum.total_epochs} [{stage.name}]",
             disable=not (self.settings.progress and self.ctx.is_main),
             leave=False,
@@ -328,30 +318,35 @@ class Trainer:
         began = time.perf_counter()
         with bar, torch.autograd.set_detect_anomaly(self.settings.detect_anomaly):
             for batch in loader:
-                if steps >= total_steps:
+                if sums.batches >= total_batches:
                     break
+                randomness.seed_training_step(self.loss, self.seed, self.epoch, sums.batches, self.ctx.rank)
                 values = self._train_step(batch)
-                steps += 1
+                sums.add(values)
                 bar.update(1)
-                if values is None:
-                    continue
-                for name, value in values.items():
-                    totals[name] += value
-                    counts[name] += 1
-                done += 1
-                bar.set_postfix(loss=f"{values['loss']:.4g}")
-                if self.logger is not None and self.global_step % self.settings.log_every == 0:
-                    self.logger.scalars(values, self.global_step, prefix="train/")
-        if steps and not done:
+                if values is not None:
+                    bar.set_postfix(loss=f"{values['loss']:.4g}")
+                    self._after_step(values, sums, total_batches)
+        if sums.batches and not sums.steps:
             raise FloatingPointError(
-                f"every training step of epoch {self.epoch + 1} ({steps} of {steps}) was skipped for non-finite "
-                f"values (see the warnings above); the model did not train. Lower optimizer.lr (now "
+                f"every training step of epoch {self.epoch + 1} ({sums.batches} of {sums.batches}) was skipped for "
+                f"non-finite values (see the warnings above); the model did not train. Lower optimizer.lr (now "
                 f"{self.optimizer.param_groups[0]['lr']:g}) or check the data; the checkpoints of earlier epochs "
-                f"are kept in {self.run_dir / CHECKPOINT_DIR}"
+                f"are kept in {self.checkpoints}"
             )
-        means = {name: value / counts[name] for name, value in totals.items()}
+        means = sums.means()
         means["epoch_seconds"] = time.perf_counter() - began
         return means
+
+    def _after_step(self, values: Mapping[str, float], sums: EpochSums, total_batches: int) -> None:
+        """Log a step's values every ``log_every`` steps; write a step checkpoint every
+        ``checkpoint_every_steps`` steps (unless the epoch ends here: its own checkpoint follows)."""
+        if self.logger is not None and self.global_step % self.settings.log_every == 0:
+            self.logger.scalars(values, self.global_step, prefix="train/")
+        every = self.settings.checkpoint_every_steps
+        if every and self.global_step % every == 0 and sums.batches < total_batches and self.ctx.is_main:
+            save_checkpoint(self.state_dict({}, sums), self.checkpoints / LAST)
+        kill_point("step", self.global_step)
 
     # ----------------------------------------------------------------------------- validation
     def _validate(self) -> dict[str, float]:
@@ -378,10 +373,9 @@ class Trainer:
             enabled=self.ctx.is_main,
             purge_step=self.global_step if self.global_step else None,
         )
-        checkpoints = self.run_dir / CHECKPOINT_DIR
         try:
-            self._run_epochs(checkpoints)
-            return self._finish(checkpoints)
+            self._run_epochs()
+            return self._finish()
         except KeyboardInterrupt:
             log.warning("interrupted; continue with: python -m train resume=%s", self.run_dir)
             raise
@@ -396,11 +390,11 @@ class Trainer:
             self.ddp_model = self.model
             gc.collect()
 
-    def _run_epochs(self, checkpoints: Path) -> None:
+    def _run_epochs(self) -> None:
         """Train, validate and checkpoint every remaining epoch."""
         self.val_data = build_split(self.config["dataset"], "val", progress=self.settings.progress and self.ctx.is_main)
         if self.settings.untrained:
-            self._save_initial_model(checkpoints)
+            self._save_initial_model()
             return
         if self.stage_index is None:
             if self.settings.val_before_training:
@@ -431,9 +425,11 @@ class Trainer:
             improved = self.monitor.update(monitored, self.epoch)
             if self.ctx.is_main:
                 state = self.state_dict(metrics)
-                save_checkpoint(state, checkpoints / LAST)
+                # best.pt first: a kill between the two writes resumes from the previous last.pt,
+                # which runs this epoch again and writes the same best.pt.
                 if improved or self.val_data is None:
-                    save_checkpoint(state, checkpoints / BEST)
+                    save_checkpoint(state, self.checkpoints / BEST)
+                save_checkpoint(state, self.checkpoints / LAST)
                 log.info(
                     "epoch %d/%d: train loss %.4g%s%s (%.0f s)",
                     self.epoch,
@@ -446,7 +442,7 @@ class Trainer:
             self.logger.flush()
             distributed.barrier(self.ctx)
 
-    def _save_initial_model(self, checkpoints: Path) -> None:
+    def _save_initial_model(self) -> None:
         """``trainer.untrained``: validate the initial model and write it as ``last.pt`` (no epoch runs)."""
         log.info(
             "trainer.untrained=true: evaluating the initial model; the curriculum's %d epoch(s) are not run",
@@ -454,25 +450,26 @@ class Trainer:
         )
         metrics = self._validate()
         if self.ctx.is_main:
-            save_checkpoint(self.state_dict(metrics), checkpoints / LAST)
+            save_checkpoint(self.state_dict(metrics), self.checkpoints / LAST)
         self.logger.flush()
         distributed.barrier(self.ctx)
 
-    def _evaluated_file(self, checkpoints: Path) -> Path:
+    def _evaluated_file(self) -> Path:
         """The checkpoint the final evaluation reads: ``last.pt`` for ``trainer.evaluate_checkpoint=last``
         and untrained runs, else ``best.pt`` (``last.pt`` when none was written)."""
         if self.settings.untrained or self.settings.evaluate_checkpoint == "last":
-            return checkpoints / LAST
-        return checkpoints / BEST if (checkpoints / BEST).is_file() else checkpoints / LAST
+            return self.checkpoints / LAST
+        return self.checkpoints / BEST if (self.checkpoints / BEST).is_file() else self.checkpoints / LAST
 
-    def _finish(self, checkpoints: Path) -> dict[str, Any]:
+    def _finish(self) -> dict[str, Any]:
         """Evaluate the chosen checkpoint (:meth:`_evaluated_file`) on the evaluation split; write ``metrics.json``."""
-        evaluated_file = self._evaluated_file(checkpoints)
+        evaluated_file = self._evaluated_file()
+        last, best = self.checkpoints / LAST, self.checkpoints / BEST
         results: dict[str, Any] = {
             "metrics": {},
-            "best_checkpoint": str(checkpoints / BEST if (checkpoints / BEST).is_file() else checkpoints / LAST),
+            "best_checkpoint": str(best if best.is_file() else last),
             "evaluated_checkpoint": str(evaluated_file),
-            "last_checkpoint": str(checkpoints / LAST),
+            "last_checkpoint": str(last),
             "output_dir": str(self.run_dir),
             "model": distributed.unwrap(self.model),
         }
@@ -481,7 +478,7 @@ class Trainer:
         if distributed.broadcast_object(diverged, self.ctx):
             raise FloatingPointError(
                 f"no validation gave a finite {self.monitor.metric}: the model is not usable (no best.pt was written; "
-                f"{checkpoints / LAST} holds the last state). Lower optimizer.lr or check the data"
+                f"{self.checkpoints / LAST} holds the last state). Lower optimizer.lr or check the data"
             )
         if not self.ctx.is_main:
             distributed.barrier(self.ctx)
@@ -559,7 +556,7 @@ def train(cfg: DictConfig) -> dict[str, Any]:
             output_dir = Path(state["path"]).parent.parent
             log.info("resuming %s at epoch %d", state["path"], state["progress"]["epoch"])
         distributed.set_threads(config["trainer"].get("threads"))
-        seed_everything(int(config["seed"]), bool(config.get("deterministic", False)))
+        randomness.seed_everything(int(config["seed"]), bool(config.get("deterministic", False)))
         loss = build_loss(config["loss"] if state is not None else cfg.loss)
         trainer = Trainer(config, output_dir, ctx, loss)
         if state is not None:

@@ -12,7 +12,14 @@ from omegaconf import OmegaConf
 from linereg.checkpoint import BEST, CHECKPOINT_DIR, LAST, find_checkpoint
 
 # Keys a resumed run takes from the current command line instead of the checkpoint.
-RESUME_OVERRIDABLE = ("trainer.device", "trainer.threads", "trainer.num_workers", "trainer.progress", "resume")
+RESUME_OVERRIDABLE = (
+    "trainer.device",
+    "trainer.threads",
+    "trainer.num_workers",
+    "trainer.progress",
+    "trainer.checkpoint_every_steps",
+    "resume",
+)
 
 
 def _flatten(config: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:
@@ -35,11 +42,12 @@ def _run_overrides(run_dir: Path) -> list[str] | None:
 
 
 def resume_checkpoint(resume: Any, output_dir: Path, overrides: list[str] | None = None) -> Path | None:
-    """The checkpoint a ``resume`` setting names.
+    """The checkpoint a ``resume`` setting names (``None``: start from the beginning).
 
     ``true``: this run folder's ``last.pt``, else that of the newest sibling run folder started
-    with the same command-line ``overrides`` (when they are known; ``resume=...`` aside). A path:
-    that checkpoint file or run folder.
+    with the same command-line ``overrides`` (when they are known; ``resume=...`` aside), else
+    none, with a warning: a run killed before its first checkpoint starts again. A path: that
+    checkpoint file or run folder.
     """
     if resume in (None, False):
         return None
@@ -55,10 +63,12 @@ def resume_checkpoint(resume: Any, output_dir: Path, overrides: list[str] | None
         if wanted is None or _run_overrides(path.parent.parent) == wanted
     ]
     if not siblings:
-        raise FileNotFoundError(
+        warnings.warn(
             f"resume=true: no {CHECKPOINT_DIR}/{LAST} in {output_dir} or in a sibling run started with the same "
-            "overrides; pass the run folder instead: resume=<path>"
+            "overrides; starting from the beginning",
+            stacklevel=2,
         )
+        return None
     return max(siblings, key=lambda path: path.stat().st_mtime)
 
 

@@ -36,6 +36,7 @@ class TrainerSettings:
     untrained: bool = False
     evaluate_checkpoint: str = "best"
     log_term_grad_norms: bool = True
+    checkpoint_every_steps: int | None = None
 
     @classmethod
     def from_config(cls, config: Mapping[str, Any]) -> TrainerSettings:
@@ -60,4 +61,7 @@ class TrainerSettings:
         for name in ("batch_size", "eval_batch_size", "val_every", "log_every", "max_bad_steps"):
             if getattr(settings, name) < 1:
                 raise ValueError(f"trainer.{name} must be >= 1, got {getattr(settings, name)}")
+        every = settings.checkpoint_every_steps
+        if every is not None and (isinstance(every, bool) or not isinstance(every, int) or every < 1):
+            raise ValueError(f"trainer.checkpoint_every_steps must be an int >= 1 or null, got {every!r}")
         return settings

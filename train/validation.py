@@ -24,6 +24,7 @@ from torch.utils.data import Dataset
 from linereg.registration.iterates import IterateRule
 from linereg.train import distributed
 from linereg.train.evaluate import Evaluation, evaluate_model, report, write_evaluation
+from linereg.train.randomness import seed_evaluation
 from linereg.train.settings import TrainerSettings
 
 
@@ -97,6 +98,8 @@ class RunEvaluator:
         device: where to compute.
         amp: autocast dtype of the forward (``None``: float32).
         iterate: the rule choosing the iterate whose errors are measured.
+        seed: the run's seed; every evaluation draws the same randomness from it (the loss's
+            lines), so it is a function of the weights alone.
     """
 
     def __init__(
@@ -107,6 +110,7 @@ class RunEvaluator:
         device: torch.device,
         amp: torch.dtype | None,
         iterate: IterateRule,
+        seed: int = 0,
     ) -> None:
         self.model = model
         self.loss = loss
@@ -114,11 +118,13 @@ class RunEvaluator:
         self.device = device
         self.amp = amp
         self.iterate = iterate
+        self.seed = seed
 
     def evaluate(
         self, dataset: Dataset, *, keep: int = 0, description: str = "validate", max_batches: int | None = None
     ) -> Evaluation:
         """The model on ``dataset`` (this process only; ``max_batches``: a prefix; ``keep``: pairs for figures)."""
+        seed_evaluation(self.loss, self.seed)
         loader = distributed.make_loader(
             dataset,
             batch_size=self.settings.eval_batch_size,

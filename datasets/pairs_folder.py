@@ -94,7 +94,13 @@ class FolderPairs(PairDataset):
             item_rng(self.seed, _STREAM, index),
             src_normals=source.normals,
             tgt_normals=target.normals,
-            meta={"dataset": self.registry_name, "index": index, "name": name, "file": str(src_file)},
+            meta={
+                "dataset": self.registry_name,
+                "index": index,
+                "name": name,
+                "file": str(src_file),
+                "target_file": str(tgt_file),
+            },
         )
 
     def settings(self) -> dict[str, Any]:

@@ -29,10 +29,12 @@ CHANCE_PLACEMENTS = 32
 """Random placements of the source that :func:`chance_fitness` measures."""
 CHANCE_QUANTILE = 0.9
 """The placements' fitness quantile that stands for chance."""
-FREE_EIGENVALUE = 0.02
-"""An eigenvalue of the normalised information matrix below this share of the largest is a free motion."""
+WEAK_DIRECTIONS = 3
+"""Directions of least information that :func:`free_motions` moves the answer along."""
+FREE_MOVE = 0.2
+"""The size of that move: a rotation of 0.2 rad (11 degrees) or a shift of 0.2 RMS radii of the overlap."""
 RIVAL_FITNESS = 0.9
-"""A turned answer that keeps this share of the answer's tight fitness is a rival."""
+"""A moved or turned answer that keeps this share of the answer's :func:`soft_fitness` fits as well."""
 SCALE_MISMATCH = 3.0
 """Point-spacing ratio from which the clouds are taken to be in different units."""
 NORMAL_NEIGHBOURS = 10
@@ -106,29 +108,48 @@ class FreeMotion(NamedTuple):
     share: float
 
 
-def free_motions(inliers: np.ndarray, target: NearestNeighbors) -> list[FreeMotion]:
-    """The motions of the moved source ``inliers (N, 3)`` that leave their point-to-plane distances
-    to the target unchanged to first order: eigenvectors of the 6x6 information matrix
-    ``sum J_i^T J_i``, ``J_i = [((p_i - c) / L) x n_i, n_i]`` (``c`` the inliers' centroid, ``L`` their
-    RMS radius), whose eigenvalue is below :data:`FREE_EIGENVALUE` of the largest."""
+def free_motions(
+    moved: np.ndarray, inliers: np.ndarray, normals_from: NearestNeighbors, target: NearestNeighbors, sigma: float
+) -> list[FreeMotion]:
+    """The motions of the answer that keep its fit: of the :data:`WEAK_DIRECTIONS` eigenvectors of
+    least eigenvalue of the 6x6 point-to-plane information matrix ``sum J_i^T J_i`` of the ``inliers
+    (n, 3)``, ``J_i = [((p_i - c) / L) x n_i, n_i]`` (``c`` their centroid, ``L`` their RMS radius,
+    ``n_i`` the target's normals from ``normals_from``), those along which a move of
+    :data:`FREE_MOVE` ``L`` (either way) keeps at least :data:`RIVAL_FITNESS`
+    of the :func:`soft_fitness` of the moved source ``moved (N, 3)`` against ``target`` at ``sigma``."""
     if len(inliers) < NORMAL_NEIGHBOURS:
         return []
-    normals = target_normals(inliers, target)
+    normals = target_normals(inliers, normals_from)
     center = inliers.mean(axis=0)
     arm = inliers - center
     length = max(float(np.sqrt(np.mean(np.sum(arm**2, axis=1)))), 1e-300)
     jacobian = np.concatenate([np.cross(arm / length, normals), normals], axis=1)
     values, vectors = np.linalg.eigh(jacobian.T @ jacobian / len(inliers))
+    own = float(soft_fitness(moved, target, np.eye(4)[None], sigma)[0])
     motions = []
-    for value, vector in zip(values, vectors.T, strict=True):
-        share = float(value / max(values[-1], 1e-300))
-        if share >= FREE_EIGENVALUE:
-            break
+    for value, vector in zip(values[:WEAK_DIRECTIONS], vectors.T[:WEAK_DIRECTIONS], strict=True):
+        moves = np.stack([_twist(sign * FREE_MOVE * vector, center, length) for sign in (1.0, -1.0)])
+        if soft_fitness(moved, target, moves, sigma).max() < RIVAL_FITNESS * own:
+            continue
         rotation, shift = vector[:3], vector[3:]
         kind = "rotation" if np.linalg.norm(rotation) >= np.linalg.norm(shift) else "translation"
         axis = rotation if kind == "rotation" else shift
-        motions.append(FreeMotion(kind, axis / np.linalg.norm(axis), center, share))
+        motions.append(FreeMotion(kind, axis / np.linalg.norm(axis), center, float(value / values[-1])))
     return motions
+
+
+def _twist(vector: np.ndarray, center: np.ndarray, length: float) -> np.ndarray:
+    """``(4, 4)``: the motion ``vector = [a, b]`` of :func:`free_motions`' coordinates, a rotation by the
+    vector ``a`` (radians) about ``center`` then a shift by ``b L``."""
+    angle = float(np.linalg.norm(vector[:3]))
+    rotation = np.eye(3)
+    if angle > 0:
+        axis = vector[:3] / angle
+        cross = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
+        rotation = np.eye(3) + np.sin(angle) * cross + (1 - np.cos(angle)) * cross @ cross
+    motion = np.eye(4)
+    motion[:3, :3], motion[:3, 3] = rotation, center - rotation @ center + vector[3:] * length
+    return motion
 
 
 def describe_free(motions: list[FreeMotion]) -> str:
@@ -174,16 +195,25 @@ def tight_fitness(source: np.ndarray, target: NearestNeighbors, transforms: np.n
     return (distances <= radius).mean(axis=1)
 
 
+def soft_fitness(source: np.ndarray, target: NearestNeighbors, transforms: np.ndarray, sigma: float) -> np.ndarray:
+    """``(K,)`` mean Gaussian scores ``exp(-d^2 / 2 sigma^2)`` of the nearest-target distances of
+    ``source (N, 3)`` under each of ``transforms (K, 4, 4)``: unlike a share within a radius it
+    falls as soon as an exact fit moves."""
+    moved = np.einsum("kij,nj->kni", transforms[:, :3, :3], source) + transforms[:, None, :3, 3]
+    distances, _ = target.query(moved, distance_upper_bound=3.0 * sigma)
+    return np.exp(-0.5 * np.square(np.minimum(distances, 3.0 * sigma) / sigma)).mean(axis=1)
+
+
 def symmetric_rival(
-    source: np.ndarray, target: NearestNeighbors, transform: np.ndarray, inliers: np.ndarray, radius: float
+    source: np.ndarray, target: NearestNeighbors, transform: np.ndarray, inliers: np.ndarray, sigma: float
 ) -> float | None:
-    """The angle (degrees) of a turned answer (:func:`turned`) whose tight fitness is at least
-    :data:`RIVAL_FITNESS` of the answer's, or ``None``."""
+    """The angle (degrees) of a turned answer (:func:`turned`) whose :func:`soft_fitness` at ``sigma``
+    is at least :data:`RIVAL_FITNESS` of the answer's, or ``None``."""
     if len(inliers) < 4:
         return None
     rivals = turned(transform, inliers)
-    own = float(tight_fitness(source, target, transform[None], radius)[0])
-    fits = tight_fitness(source, target, rivals, radius)
+    own = float(soft_fitness(source, target, transform[None], sigma)[0])
+    fits = soft_fitness(source, target, rivals, sigma)
     if own <= 0 or fits.max() < RIVAL_FITNESS * own:
         return None
     return float([90, 180, 270][int(fits.argmax()) % 3])
@@ -225,12 +255,21 @@ def surface_points(target: np.ndarray, source: np.ndarray, sample: int = 5000, s
 
 TIGHT_DISTANCES = 1.5
 """Radius of the chance test, in point spacings of the target's surface (:func:`spacing_of`)."""
-CHANCE_FACTOR = 2.0
-"""A confident answer's tight fitness is at least this multiple of chance's ..."""
 CHANCE_MARGIN = 0.05
-"""... plus this share."""
+"""A confident answer's tight fitness exceeds chance's by at least this share, and ..."""
+CHANCE_FACTOR = 2.0
+"""... is at least this multiple of chance's, or ..."""
+CHANCE_MISS = 0.25
+"""... leaves at most this share of the points that chance leaves (a volume-like cloud, where chance is high)."""
 UNITS_HINT = 1.5
 """Point-spacing ratio from which a pose that is not trusted gets the hint to try ``scale=true``."""
+
+
+def beats_chance(own: float, chance: float) -> bool:
+    """Whether a tight fitness ``own`` is clearly above ``chance``'s: by :data:`CHANCE_MARGIN`, and
+    :data:`CHANCE_FACTOR` times it or missing at most :data:`CHANCE_MISS` of what it misses."""
+    clear = own >= CHANCE_FACTOR * chance or 1.0 - own <= CHANCE_MISS * (1.0 - chance)
+    return own - chance >= CHANCE_MARGIN and clear
 
 
 class Verdict(NamedTuple):
@@ -254,8 +293,7 @@ def verdict(
     """The tests of this module on ``transform (4, 4)`` mapping ``source (N, 3)`` (``subset (n, 3)``
     of it measured) onto ``target (M, 3)``, whose clutter-free ``surface`` (:func:`surface_points`;
     ``None``: all of it) gave the inlier test its result ``passed``. Confident: ``passed``, a tight
-    fitness of at least :data:`CHANCE_FACTOR` times chance's plus :data:`CHANCE_MARGIN`, no free
-    motion and no symmetric rival."""
+    fitness above chance's (:func:`beats_chance`), no free motion and no symmetric rival."""
     surface = target if surface is None else surface
     source_spacing, target_spacing = spacing_of(source), spacing_of(surface)
     mismatch = scale_mismatch(source_spacing, target_spacing)
@@ -272,7 +310,7 @@ def verdict(
     own = float(tight_fitness(subset, index, transform[None], radius)[0])
     chance = chance_fitness(subset, index, radius)
     failures = []
-    if own < CHANCE_FACTOR * chance + CHANCE_MARGIN:
+    if not beats_chance(own, chance):
         failures.append(
             f"the fit is no better than chance: {100 * own:.0f} % of the source within {TIGHT_DISTANCES:g} point "
             f"spacings of the target, {100 * chance:.0f} % at random placements (a cluttered or much denser target?)"
@@ -281,10 +319,11 @@ def verdict(
     moved = subset @ transform[:3, :3].T + transform[:3, 3]
     distances, _ = index.query(moved, distance_upper_bound=radius)
     inliers = moved[distances <= radius]
-    motions = free_motions(inliers, index if surface is target else NearestNeighbors(surface))
+    normals_from = index if surface is target else NearestNeighbors(surface)
+    motions = free_motions(moved, inliers, normals_from, index, target_spacing)
     if motions:
         failures.append(describe_free(motions))
-    rival = symmetric_rival(subset, index, transform, inliers, radius)
+    rival = symmetric_rival(subset, index, transform, inliers, target_spacing)
     if rival is not None:
         failures.append(
             f"the pose is not unique: the answer turned {rival:.0f} degrees about a principal axis of the overlap "

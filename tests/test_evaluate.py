@@ -217,3 +217,31 @@ def test_plot_registration_writes_a_png(tmp_path):
     assert len(figure.axes) == 2
     with pytest.raises(ValueError, match=r"T must have shape \(4, 4\)"):
         registration_figure(src, src, np.eye(3))
+
+
+@pytest.mark.parametrize("offset", [0.0, 0.4])
+def test_evaluate_judges_a_pair_as_register_does_in_its_input_units(tmp_path, offset):
+    """The pairs are scaled into a cube for the network; the check maps the estimate back and judges
+    it on the pair's files with register's function, so both commands give one verdict and one RMSE."""
+    from linereg.io import read_point_cloud, read_transform
+    from linereg.registration.api import quality
+    from linereg.train.evaluate import assess_pairs
+
+    _pairs_folder(tmp_path / "pairs", (300,), labelled=True)
+    pair = FolderPairs(tmp_path / "pairs", half_extent=1.0).make_pair(0)
+    assert pair.meta["scale"] != 1.0
+    loader = distributed.make_loader(
+        FolderPairs(tmp_path / "pairs", half_extent=1.0), batch_size=1, num_points=None, shuffle=False
+    )
+    batch = next(iter(loader))
+    estimate = batch.gt_transform.clone().double()
+    estimate[:, 0, 3] += offset
+    (judged,) = assess_pairs(estimate, batch)
+    truth = read_transform(tmp_path / "pairs" / "p0_gt.txt")
+    in_units = truth.copy()
+    in_units[0, 3] += offset / pair.meta["scale"]
+    source, target = (read_point_cloud(tmp_path / "pairs" / f"p0_{side}.ply").xyz for side in ("src", "tgt"))
+    registered = quality(source, target, in_units)
+    assert judged.confident == registered["confident"] == (offset == 0.0)
+    assert judged.inlier_rmse == pytest.approx(registered["inlier_rmse"], rel=1e-4, abs=1e-6)
+    assert judged.fitness == pytest.approx(registered["fitness"])

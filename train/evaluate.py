@@ -236,15 +236,39 @@ def _add_errors(
 
 
 def assess_pairs(T_pred: torch.Tensor, batch: PairBatch) -> list[Assessment]:
-    """:func:`linereg.register`'s check of each estimate ``T_pred (B, 4, 4)``: the pair's valid
-    source points, moved by it, against its valid target points (numpy, on the CPU)."""
+    """:func:`linereg.register`'s check of each estimate ``T_pred (B, 4, 4)``, on the clouds in their
+    input units (:func:`input_units`): the pair's files where its meta names them, else its valid
+    points mapped back from the cube they were scaled into (numpy, on the CPU)."""
     transforms = T_pred.detach().cpu().double().numpy()
+    meta = batch.meta or [{} for _ in range(batch.batch_size)]
     return [
         assess_registration(
-            _valid(batch.src_xyz, batch.src_lengths, b), _valid(batch.tgt_xyz, batch.tgt_lengths, b), transforms[b]
+            *input_units(
+                _valid(batch.src_xyz, batch.src_lengths, b),
+                _valid(batch.tgt_xyz, batch.tgt_lengths, b),
+                transforms[b],
+                meta[b],
+            )
         )
         for b in range(batch.batch_size)
     ]
+
+
+def input_units(
+    src: np.ndarray, tgt: np.ndarray, transform: np.ndarray, meta: Mapping[str, Any]
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``(source, target, transform)`` of a pair in its input units: the files ``meta["file"]`` and
+    ``meta["target_file"]`` when both are given, else ``src (N, 3)`` and ``tgt (M, 3)`` mapped back by
+    ``x = x' / s + c`` (``meta["scale"]``, ``meta["center"]``; as they are without them), and
+    ``transform (4, 4)`` between them."""
+    from linereg.datasets.protocol import scale_transform
+    from linereg.io import read_point_cloud
+
+    scale, center = float(meta.get("scale", 1.0)), np.asarray(meta.get("center", np.zeros(3)), dtype=np.float64)
+    transform = scale_transform(transform, -center * scale, 1.0 / scale)
+    if "file" in meta and "target_file" in meta:
+        return read_point_cloud(meta["file"]).xyz, read_point_cloud(meta["target_file"]).xyz, transform
+    return src / scale + center, tgt / scale + center, transform
 
 
 def _kept_pair(batch: PairBatch, T_pred: torch.Tensor, b: int) -> KeptPair:

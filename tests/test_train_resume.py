@@ -19,7 +19,7 @@ from hydra import compose, initialize_config_dir
 from linereg.losses import build_loss
 from linereg.train import checkpoint, loop, randomness, resume
 from linereg.train.evaluate import evaluate
-from linereg.train.logging import read_scalars
+from linereg.train.logging import RunLogger, read_scalars
 
 ROOT = Path(__file__).resolve().parent.parent
 SMALL = ["model.num_neighbors=8", "loss.num_lines=300"]
@@ -107,9 +107,19 @@ def test_resume_true_finds_the_newest_sibling_with_the_same_overrides(tmp_path):
     found = resume.resume_checkpoint(True, current, ["seed=1", "resume=true"])
     assert found == tmp_path / "new" / "checkpoints" / "last.pt"
     assert resume.resume_checkpoint(True, current, ["seed=2"]).parent.parent.name == "other"
+    changed_machine = ["trainer.num_workers=2", "seed=1", "trainer.threads=4", "resume=true"]
+    assert resume.resume_checkpoint(True, current, changed_machine).parent.parent.name == "new"
     with pytest.warns(UserWarning, match="same overrides; starting from the beginning"):
         assert resume.resume_checkpoint(True, current, ["seed=3"]) is None
     assert resume.resume_checkpoint(False, current) is None
+
+
+def test_the_scalar_log_drops_a_line_a_killed_process_left_unfinished(tmp_path):
+    (tmp_path / "scalars.jsonl").write_text('{"step": 1, "train/loss": 2.0}\n{"step": 2, "train/lo')
+    logger = RunLogger(tmp_path, tensorboard=False)
+    logger.scalars({"loss": 1.5}, 2, prefix="train/")
+    logger.close()
+    assert [(r["step"], r["train/loss"]) for r in read_scalars(tmp_path)] == [(1, 2.0), (2, 1.5)]
 
 
 def test_save_is_atomic(tmp_path, monkeypatch):

@@ -3,7 +3,8 @@
 Every scalar goes to both: TensorBoard for browsing (``tensorboard --logdir outputs``) and one
 JSON line per call (``{"step": ..., "time": ..., "<tag>": value, ...}``) for scripts and
 tests. A resumed run appends to the same files; TensorBoard drops the events written after the
-checkpoint it resumes from (``purge_step``), readers of the JSONL keep the last line per step.
+checkpoint it resumes from (``purge_step``), readers of the JSONL keep the last line per step
+(and a line a killed process left unfinished is cut off first).
 Only rank 0 logs (:class:`RunLogger` is created disabled elsewhere).
 """
 
@@ -11,6 +12,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import time
 from collections.abc import Mapping
 from pathlib import Path
@@ -46,6 +48,7 @@ class RunLogger:
         if not enabled:
             return
         self.run_dir.mkdir(parents=True, exist_ok=True)
+        _drop_torn_line(self.run_dir / SCALARS_FILE)
         self._jsonl = open(self.run_dir / SCALARS_FILE, "a", encoding="utf-8")
         if tensorboard:
             from torch.utils.tensorboard import SummaryWriter
@@ -88,6 +91,20 @@ class RunLogger:
         if self._jsonl is not None:
             self._jsonl.close()
             self._jsonl = None
+
+
+def _drop_torn_line(path: Path) -> None:
+    """Cut an unfinished last line (a process killed while writing it) off a JSONL file."""
+    if not path.is_file():
+        return
+    with open(path, "rb+") as handle:
+        if handle.seek(0, os.SEEK_END) == 0:
+            return
+        handle.seek(-1, os.SEEK_END)
+        if handle.read(1) == b"\n":
+            return
+        handle.seek(0)
+        handle.truncate(handle.read().rfind(b"\n") + 1)
 
 
 def read_scalars(run_dir: str | Path) -> list[dict]:

@@ -33,21 +33,26 @@ def _flatten(config: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:
     return flat
 
 
+def _defining(overrides: list[str]) -> list[str]:
+    """The overrides that define a run: without those of :data:`RESUME_OVERRIDABLE` (``resume`` included)."""
+    return sorted(item for item in overrides if item.split("=", 1)[0].lstrip("+~") not in RESUME_OVERRIDABLE)
+
+
 def _run_overrides(run_dir: Path) -> list[str] | None:
-    """The command-line overrides Hydra recorded for a run folder, without ``resume``."""
+    """The defining command-line overrides Hydra recorded for a run folder."""
     recorded = run_dir / ".hydra" / "overrides.yaml"
     if not recorded.is_file():
         return None
-    return sorted(str(item) for item in OmegaConf.load(recorded) if not str(item).startswith("resume="))
+    return _defining([str(item) for item in OmegaConf.load(recorded)])
 
 
 def resume_checkpoint(resume: Any, output_dir: Path, overrides: list[str] | None = None) -> Path | None:
     """The checkpoint a ``resume`` setting names (``None``: start from the beginning).
 
     ``true``: this run folder's ``last.pt``, else that of the newest sibling run folder started
-    with the same command-line ``overrides`` (when they are known; ``resume=...`` aside), else
-    none, with a warning: a run killed before its first checkpoint starts again. A path: that
-    checkpoint file or run folder.
+    with the same command-line ``overrides`` (when they are known; those a resume may change
+    aside), else none, with a warning: a run killed before its first checkpoint starts again.
+    A path: that checkpoint file or run folder.
     """
     if resume in (None, False):
         return None
@@ -56,7 +61,7 @@ def resume_checkpoint(resume: Any, output_dir: Path, overrides: list[str] | None
     own = output_dir / CHECKPOINT_DIR / LAST
     if own.is_file():
         return own
-    wanted = None if overrides is None else sorted(o for o in overrides if not o.startswith("resume="))
+    wanted = None if overrides is None else _defining(overrides)
     siblings = [
         path
         for path in output_dir.parent.glob(f"*/{CHECKPOINT_DIR}/{LAST}")

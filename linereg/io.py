@@ -465,8 +465,9 @@ def _write_obj(path: Path, xyz: np.ndarray, normals: np.ndarray | None) -> None:
             np.savetxt(stream, normals, fmt="vn %.9g %.9g %.9g")
 
 
-def read_transform(path: str | Path) -> np.ndarray:
-    """Read a rigid transform: a 4x4 or 3x4 matrix (the last row ``[0, 0, 0, 1]`` implied).
+def read_transform(path: str | Path, *, rigid: bool = True) -> np.ndarray:
+    """Read a rigid transform (``rigid=False``: any finite one, a similarity): a 4x4 or 3x4 matrix
+    (the last row ``[0, 0, 0, 1]`` implied).
 
     Formats: ``.npy`` (a 4x4 or 3x4 array), ``.npz`` (exactly one such array), anything else text
     of 16 or 12 numbers separated by whitespace, commas or newlines (``#`` starts a comment).
@@ -487,7 +488,7 @@ def read_transform(path: str | Path) -> np.ndarray:
         raise ValueError(f"{path}: cannot read transform: {error}") from error
     try:
         transform = homogeneous_matrix(stored)
-        check_transform(transform, "transform", rigid_atol=RIGID_TOLERANCE)
+        check_transform(transform, "transform", rigid_atol=RIGID_TOLERANCE if rigid else None)
     except ValueError as error:
         raise ValueError(f"{path}: {error}") from error
     return transform

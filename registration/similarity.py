@@ -23,11 +23,11 @@ from linereg.procrustes import weighted_procrustes_numpy
 from linereg.registration.trust import spacing_of
 from linereg.registration.welsch import welsch_weights
 
-AGREEMENT = 1.25
+AGREEMENT = 1.02
 """Two guesses within this ratio of each other are one (the spacing ratio's)."""
 POLISH_POINTS = 2048
 """FPS points of the source the polish moves."""
-POLISH_SCALES = np.geomspace(4.0, 1.0, 12).tolist() + [1.0] * 8
+POLISH_SCALES = np.geomspace(4.0, 1.0, 20).tolist() + [1.0] * 20
 """Welsch scales of the polish, in point spacings of the target."""
 
 

@@ -45,6 +45,8 @@ SURFACE_DENSITY = 1.5
 """A target point is on a surface when its density distance is within this factor of the source's."""
 SURFACE_SHARE = (0.02, 0.8)
 """The surface's share of the target between which the rest is clutter (else the target is kept whole)."""
+SURFACE_GAP = 1.8
+"""The rest of the target is clutter only when its median density distance is this many times the surface's."""
 SURFACE_FLOOR = 1.2
 """The densest 5 % of the target lie within this factor of the source's density distance when
 part of it is sampled as the source is (a target in other units is not)."""
@@ -237,8 +239,10 @@ def surface_points(target: np.ndarray, source: np.ndarray, sample: int = 5000, s
     A point's density distance is the distance to its :data:`SURFACE_NEIGHBOURS`-th nearest other
     point; a target point is kept when its distance is at most :data:`SURFACE_DENSITY` times the
     median of the source's (uniform clutter in a volume is far sparser than a scanned surface).
-    The share, and whether the target's densest points match the source's density at all
-    (:data:`SURFACE_FLOOR`), are first estimated on a random ``sample`` of the target.
+    The share, whether the target's densest points match the source's density at all
+    (:data:`SURFACE_FLOOR`) and whether the rest is far sparser than they are (:data:`SURFACE_GAP`:
+    a target in other units or of uneven density is not cluttered) are first estimated on a random
+    ``sample`` of the target.
     """
     rng = np.random.default_rng(seed)
     k = SURFACE_NEIGHBOURS + 1
@@ -247,8 +251,11 @@ def surface_points(target: np.ndarray, source: np.ndarray, sample: int = 5000, s
     index = NearestNeighbors(target)
     probe = target if len(target) <= sample else target[rng.choice(len(target), sample, replace=False)]
     density = index.query(probe, k=k)[0][:, -1]
-    share = float((density <= SURFACE_DENSITY * reference).mean())
+    dense = density <= SURFACE_DENSITY * reference
+    share = float(dense.mean())
     if not SURFACE_SHARE[0] <= share < SURFACE_SHARE[1] or np.quantile(density, 0.05) > SURFACE_FLOOR * reference:
+        return None
+    if np.median(density[~dense]) < SURFACE_GAP * np.median(density[dense]):
         return None
     return index.query(target, k=k)[0][:, -1] <= SURFACE_DENSITY * reference
 
@@ -317,13 +324,13 @@ def verdict(
         )
         return Verdict(False, own, chance, tuple(notes + failures))
     moved = subset @ transform[:3, :3].T + transform[:3, 3]
-    distances, _ = index.query(moved, distance_upper_bound=radius)
+    on_surface = index if surface is target else NearestNeighbors(surface)
+    distances, _ = on_surface.query(moved, distance_upper_bound=radius)
     inliers = moved[distances <= radius]
-    normals_from = index if surface is target else NearestNeighbors(surface)
-    motions = free_motions(moved, inliers, normals_from, index, target_spacing)
+    motions = free_motions(moved, inliers, on_surface, on_surface, target_spacing)
     if motions:
         failures.append(describe_free(motions))
-    rival = symmetric_rival(subset, index, transform, inliers, target_spacing)
+    rival = symmetric_rival(subset, on_surface, transform, inliers, target_spacing)
     if rival is not None:
         failures.append(
             f"the pose is not unique: the answer turned {rival:.0f} degrees about a principal axis of the overlap "

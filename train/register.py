@@ -80,6 +80,27 @@ def parse_init(value: Any) -> np.ndarray | None:
         raise RegisterError(f"init={value!r}: {error}") from error
 
 
+def read_similarity(path: Any, argument: str) -> np.ndarray:
+    """The transform file of ``argument`` as a ``(4, 4)`` similarity ``[s R | t]`` (``scale=true``'s
+    ground truth): its block divided by the cube root of its determinant must be rigid.
+
+    Raises:
+        RegisterError: missing, unreadable, a reflection or not a similarity; the message names ``argument``.
+    """
+    from linereg.checks import as_rigid_transform
+    from linereg.io import read_transform
+
+    try:
+        matrix = read_transform(Path(str(path)).expanduser(), rigid=False)
+        scale = float(np.cbrt(np.linalg.det(matrix[:3, :3])))
+        if not scale > 0:
+            raise ValueError("its 3x3 block has no positive determinant (not a rotation times a scale)")
+        rigid = as_rigid_transform(matrix @ np.diag([1 / scale, 1 / scale, 1 / scale, 1.0]), argument)
+    except (OSError, ValueError) as error:
+        raise RegisterError(f"{argument}={path}: {error}") from error
+    return rigid @ np.diag([scale, scale, scale, 1.0])
+
+
 def read_rigid(path: Any, argument: str) -> np.ndarray:
     """The transform file of ``argument`` (``gt``, ``init``: ``.txt``, ``.npy`` or ``.npz``) as an
     exactly rigid ``(4, 4)``; a nearly rigid one is orthonormalised with a warning naming ``argument``.
@@ -161,7 +182,7 @@ def register_files(cfg: DictConfig, out_dir: Path) -> tuple[Any, dict[str, Any]]
     tgt = read_cloud(cfg.target, "target")
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        gt = read_rigid(cfg.gt, "gt") if cfg.gt else None
+        gt = (read_similarity if cfg.scale else read_rigid)(cfg.gt, "gt") if cfg.gt else None
         init = parse_init(cfg.init)
     input_notes = _notes(caught)
     if cfg.picture and find_spec("matplotlib") is None:
@@ -192,11 +213,15 @@ def _register(cfg: DictConfig, src, tgt, init: np.ndarray | None, gt: np.ndarray
                 method=config,
                 device=cfg.device,
                 fitness_threshold=cfg.fitness_threshold,
+                scale=cfg.scale,
                 **(options if cfg.refine else {}),
             )
         except (KeyError, TypeError, ValueError) as error:
             raise RegisterError(str(error)) from error
-    return result, _notes(caught)
+    notes = _notes(caught)
+    for note in result.info.get("warnings", ()):
+        warn(note)
+    return result, notes + list(result.info.get("warnings", ()))
 
 
 def _notes(caught: list[warnings.WarningMessage]) -> list[str]:
@@ -226,6 +251,7 @@ def _report(cfg: DictConfig, src, tgt, result, notes: list[str], gt: np.ndarray 
     """The contents of ``result.json``: clouds, method, time, transform, quality and (with ``gt``) errors."""
     transform = result.transformation
     info = dict(result.info)
+    info.pop("warnings", None)
     quality = {key: info.pop(key) for key in ("fitness_threshold", "sampling_distance", "init") if key in info}
     report: dict[str, Any] = {
         "source": str(cfg.source),
@@ -238,6 +264,7 @@ def _report(cfg: DictConfig, src, tgt, result, notes: list[str], gt: np.ndarray 
         "fitness": result.fitness,
         "inlier_rmse": result.inlier_rmse,
         "confident": result.confident,
+        "scale": result.scale,
         **quality,
         "info": info,
         "warnings": notes,
@@ -247,10 +274,17 @@ def _report(cfg: DictConfig, src, tgt, result, notes: list[str], gt: np.ndarray 
 
         from linereg.metrics import registration_errors
 
+        gt_scale = float(np.cbrt(np.linalg.det(gt[:3, :3])))
+        unscaled = [
+            matrix @ np.diag([1 / s, 1 / s, 1 / s, 1.0]) for matrix, s in ((transform, result.scale), (gt, gt_scale))
+        ]
         errors = registration_errors(
-            torch.from_numpy(transform)[None], torch.from_numpy(gt)[None], torch.from_numpy(src.xyz).double()[None]
+            torch.from_numpy(unscaled[0])[None],
+            torch.from_numpy(unscaled[1])[None],
+            gt_scale * torch.from_numpy(src.xyz).double()[None],
         )
         report["metrics"] = {key: float(value[0]) for key, value in errors.items()}
+        report["metrics"]["scale_error"] = result.scale / gt_scale - 1.0
     return report
 
 
@@ -279,13 +313,15 @@ def _register_app(cfg: DictConfig) -> None:
     np.set_printoptions(precision=6, suppress=True)
     print(f"source -> target transform ({result.seconds:.2f} s):")
     print(result.transformation)
-    flag = "confident" if result.confident else "NOT confident: the pose may be wrong"
-    print(f"fitness {result.fitness:.3f} | inlier_rmse {result.inlier_rmse:.4g} | {flag}")
+    flag = "confident" if result.confident else "NOT confident: the pose may be wrong (warnings above)"
+    scale = f"scale {result.scale:.6g} | " if cfg.scale else ""
+    print(f"{scale}fitness {result.fitness:.3f} | inlier_rmse {result.inlier_rmse:.4g} | {flag}")
     if "metrics" in report:
         m = report["metrics"]
         print(
             f"Err_R {m['err_r_deg']:.3f} deg | translation error {m['err_t_l2']:.4g} "
             f"| Err_pw l1 {m['err_pw_l1']:.4g} l2 {m['err_pw_l2']:.4g}"
+            + (f" | scale error {100 * m['scale_error']:+.3f} %" if cfg.scale else "")
         )
     print(f"outputs in {out_dir}")
 

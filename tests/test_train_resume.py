@@ -80,6 +80,31 @@ def test_resume_gives_the_same_next_step(tmp_path, monkeypatch, overrides, inter
         torch.testing.assert_close(final_b[name], value, rtol=0, atol=0)
 
 
+def test_a_kill_between_the_two_checkpoints_of_an_epoch_changes_nothing(tmp_path, monkeypatch):
+    uninterrupted = loop.train(tiny_config(tmp_path / "a"))
+    best_epoch = uninterrupted["metrics"]["best_epoch"]  # its end writes best.pt and last.pt
+    original = loop.save_checkpoint
+    written = []
+
+    def save_then_die(state, path):
+        original(state, path)
+        written.append(Path(path).name)
+        if state["progress"]["epoch"] == best_epoch:
+            raise KeyboardInterrupt  # as a kill before the second file
+
+    monkeypatch.setattr(loop, "save_checkpoint", save_then_die)
+    with pytest.raises(KeyboardInterrupt):
+        loop.train(tiny_config(tmp_path / "b"))
+    monkeypatch.undo()
+    assert written[-1] == "best.pt"
+    resumed = loop.train(tiny_config(tmp_path / "b", "resume=true"))
+    assert resumed["metrics"] == uninterrupted["metrics"]
+    for name in ("best_checkpoint", "last_checkpoint"):
+        final_a = checkpoint.load_checkpoint(uninterrupted[name])["model"]
+        final_b = checkpoint.load_checkpoint(resumed[name])["model"]
+        assert all(torch.equal(final_b[key], value) for key, value in final_a.items()), name
+
+
 def test_resume_takes_the_checkpoint_config(tmp_path, monkeypatch):
     _interrupt_at(monkeypatch, 1)
     with pytest.raises(KeyboardInterrupt):

@@ -7,11 +7,14 @@ draws exactly what the uninterrupted run draws:
 * each training step: the python, numpy and torch (CPU and CUDA) global generators (dropout and
   any other draw of the model) and the loss's generators (its random lines) are seeded from
   ``(seed, epoch, batch of the epoch, rank)``;
-* the data loader of an epoch (its shuffle and its workers' seeds) from ``(seed, epoch, rank)``;
+* the data loader of an epoch: its order from ``(seed, epoch)`` (each rank its shard), its
+  workers' seeds from ``(seed, epoch, rank)`` (:func:`linereg.train.distributed.make_loader`);
 * each evaluation (validation, the final evaluation) seeds the global generators and the
   loss's from the seed alone: an evaluation is a function of the weights.
 
-The pairs themselves are pure functions of ``(seed, index)`` (:func:`linereg.datasets.base.item_rng`).
+The pairs themselves (poses, views, augmentations) are pure functions of ``(seed, index)``
+(:func:`linereg.datasets.base.item_rng`). Bit-exact results also need the same thread counts
+(:func:`linereg.train.distributed.set_threads`) and, on a GPU, ``deterministic=true``.
 """
 
 from __future__ import annotations

@@ -15,6 +15,7 @@
 
 from __future__ import annotations
 
+import functools
 import os
 import time
 from collections.abc import Mapping
@@ -28,7 +29,7 @@ from linereg import pretrained
 from linereg.checks import as_rigid_transform, check_points, is_tensor
 from linereg.fps import farthest_point_subset as fps
 from linereg.io import PointCloud, read_point_cloud
-from linereg.registration.evaluation import assess_registration
+from linereg.registration.evaluation import Assessment, assess_registration
 from linereg.registration.methods import METHODS, MethodResult, run_centered, run_with_init
 from linereg.registration.similarity import scale_guesses, scale_of, similarity_polish, with_scale
 from linereg.registration.trust import surface_points
@@ -36,6 +37,9 @@ from linereg.registry import UnknownNameError
 
 DEFAULT_METHOD = "robust"
 _MIN_POINTS = 3
+POLISH_ONLY = {"starts": 1, "coarse_steps": 0, "rounds": 1, "global_candidates": "never"}
+"""The solver's options of the polish that finishes a network's pose: from that pose alone, no
+coarse stage, no later round, no global candidates (the Welsch IRLS polish and the fine steps)."""
 
 
 @dataclass
@@ -128,10 +132,10 @@ class LearnedRegistration:
             ``best.pt``) or a pretrained name (:mod:`linereg.pretrained`).
         device: torch device of the model.
         num_points: points per cloud fed to the model (``None``: the run's ``trainer.num_points``).
-        refine: also run the default solver from the model's estimate (a single start:
-            coarse CD-W, Welsch IRLS, the selection, escalating only when doubtful; numpy, on
-            the CPU whatever ``device``); a mapping gives
-            :class:`~linereg.registration.robust.RobustOptions` fields.
+        refine: finish the network's pose with the solver (:meth:`finish`): a local polish from it,
+            register's check, and the whole solver only when the check fails; a mapping gives
+            :class:`~linereg.registration.robust.RobustOptions` fields of both (numpy, on the CPU
+            whatever ``device``).
     """
 
     def __init__(
@@ -144,19 +148,19 @@ class LearnedRegistration:
     ) -> None:
         import torch
 
-        from linereg.models import load_model
         from linereg.registration.iterates import IterateRule
 
-        self.model, state = load_model(checkpoint, device)
+        self.model, state = _loaded(str(checkpoint), str(device))
         self.device = torch.device(device)
         self.checkpoint = state["path"]
         self.iterate = IterateRule.from_config(state["config"].get("iterate"))
         self.num_points = num_points or state["config"].get("trainer", {}).get("num_points") or 1024
         self.half_extent = training_half_extent(state["config"].get("dataset") or {})
-        self.refiner = None
+        self.polisher = self.solver = None
         if refine:
-            options = {"starts": 1, **(dict(refine) if isinstance(refine, Mapping) else {})}
-            self.refiner = METHODS.build({"name": DEFAULT_METHOD, "options": options})
+            options = dict(refine) if isinstance(refine, Mapping) else {}
+            self.polisher = METHODS.build({"name": DEFAULT_METHOD, "options": {**POLISH_ONLY, **options}})
+            self.solver = METHODS.build({"name": DEFAULT_METHOD, "options": options})
 
     def _predict(self, src, tgt, src_normals, tgt_normals) -> MethodResult:
         import torch
@@ -192,11 +196,57 @@ class LearnedRegistration:
             "iterate": self.iterate.as_config(),
             "network_transform": predicted.transform.tolist(),
         }
-        if self.refiner is None:
-            return MethodResult(transform=predicted.transform, seconds=predicted.seconds, info=info)
-        refined = run_with_init(self.refiner, src, tgt, init=predicted.transform)
-        info.update(refined.info)
-        return MethodResult(transform=refined.transform, seconds=predicted.seconds + refined.seconds, info=info)
+        if self.polisher is None:
+            return MethodResult(
+                transform=predicted.transform, seconds=predicted.seconds, info={**info, "path": "network"}
+            )
+        finished = self.finish(src, tgt, predicted.transform)
+        return MethodResult(
+            transform=finished.transform,
+            seconds=predicted.seconds + finished.seconds,
+            info={**info, **finished.info},
+        )
+
+    def finish(self, src: np.ndarray, tgt: np.ndarray, start: np.ndarray) -> MethodResult:
+        """The network's pose ``start (4, 4)`` finished on ``src (N, 3)`` and ``tgt (M, 3)`` in their own
+        units: a local polish from it (:data:`POLISH_ONLY`); when register's check
+        (:func:`~linereg.registration.evaluation.assess_registration`) does not trust it, the whole
+        solver from scratch, whose answer replaces the polished one only when the check prefers it
+        (:func:`preferred`). ``info["path"]``: ``"polished network"`` or ``"solver"``, with
+        ``"solver_ran"``."""
+        began = time.perf_counter()
+        polished = run_with_init(self.polisher, src, tgt, init=start)
+        judged = assess_registration(src, tgt, polished.transform)
+        info = {"solver_ran": False, "polished_confident": judged.confident}
+        if judged.confident:
+            seconds = time.perf_counter() - began
+            return MethodResult(polished.transform, seconds, {**polished.info, **info, "path": "polished network"})
+        solved = self.solver(src, tgt)
+        rival = assess_registration(src, tgt, solved.transform)
+        info["solver_ran"] = True
+        winner, path = (solved, "solver") if preferred(rival, judged) else (polished, "polished network")
+        return MethodResult(winner.transform, time.perf_counter() - began, {**winner.info, **info, "path": path})
+
+
+@functools.lru_cache(maxsize=4)
+def _loaded(checkpoint: str, device: str):
+    """:func:`linereg.models.load_model`, once per checkpoint and device in a process (the model is
+    only read: evaluation mode, ``torch.no_grad``)."""
+    from linereg.models import load_model
+
+    return load_model(checkpoint, device)
+
+
+def preferred(first: Assessment, second: Assessment) -> bool:
+    """Whether register's check prefers the answer judged ``first`` to the one judged ``second``:
+    confident before not, then the larger tight fitness (the share near the target at 1.5 point
+    spacings), then the larger fitness."""
+
+    def rank(judged: Assessment) -> tuple[bool, float, float]:
+        tight = judged.tight_fitness if np.isfinite(judged.tight_fitness) else -1.0
+        return judged.confident, tight, judged.fitness
+
+    return rank(first) > rank(second)
 
 
 def training_half_extent(dataset: Mapping[str, Any]) -> float | None:

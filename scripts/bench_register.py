@@ -4,6 +4,7 @@
     python scripts/bench_register.py --pairs 10 --commands 3 --json
     python scripts/bench_register.py --compare '{"name": "robust", "options": {"rounds": 1}}'
     python scripts/bench_register.py --scans --repeats 2  # real scans, the command vs fpfh_ransac, per path
+    python scripts/bench_register.py --scans --baseline ../other-checkout   # + that checkout's command, same run
 
 Pairs: :mod:`linereg.datasets.partial_vs_whole` on the ModelNet40 airplanes of the shared data (source a
 hidden-point-removal view of 1024 points, target 2048 points of the whole shape). In one run,
@@ -34,6 +35,9 @@ default took: ``local`` (the first round's answer kept: not doubtful, or trusted
 check) or ``global`` (the dense check doubted it; how many global candidates ran). A last table
 gives each path's share of the pairs, its median and largest command time and its median ratio
 to the reference.
+
+With ``--baseline <checkout>`` the same command of another checkout of linereg (another version)
+is timed beside it, on the same pairs, in the same run: ``command / baseline``.
 
 Absolute times depend on the machine and on what else runs: compare the ratios of one run.
 """
@@ -85,17 +89,17 @@ def _solver_times(method, pairs) -> tuple[list[float], list[float]]:
     return seconds, errors
 
 
-def _env() -> dict[str, str]:
-    """The environment of the timed commands: the checkout first on ``PYTHONPATH``."""
-    return dict(os.environ, PYTHONPATH=os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")]))
+def _env(root: Path = ROOT) -> dict[str, str]:
+    """The environment of the timed commands: the checkout ``root`` first on ``PYTHONPATH``."""
+    return dict(os.environ, PYTHONPATH=os.pathsep.join([str(root), os.environ.get("PYTHONPATH", "")]))
 
 
-def _wall(command: list[str], cwd: Path, repeats: int) -> float:
-    """Median wall-clock seconds of ``command`` (must succeed)."""
+def _wall(command: list[str], cwd: Path, repeats: int, root: Path = ROOT) -> float:
+    """Median wall-clock seconds of ``command`` (must succeed) with the checkout ``root``'s code."""
     times = []
     for _ in range(repeats):
         start = time.perf_counter()
-        subprocess.run(command, cwd=cwd, env=_env(), check=True, capture_output=True)
+        subprocess.run(command, cwd=cwd, env=_env(root), check=True, capture_output=True)
         times.append(time.perf_counter() - start)
     return statistics.median(times)
 
@@ -103,8 +107,9 @@ def _wall(command: list[str], cwd: Path, repeats: int) -> float:
 _TORCH_FREE = "import sys, linereg.registration.api; assert 'torch' not in sys.modules, 'torch was imported'"
 
 
-def measure(pairs, folder: Path, commands: int, compare: dict | None) -> dict[str, float]:
-    """One row: solver, ICP, compared method and command times (medians) and their ratios."""
+def measure(pairs, folder: Path, commands: int, compare: dict | None, baseline: Path | None = None) -> dict[str, float]:
+    """One row: solver, ICP, compared method and command times (medians) and their ratios; with
+    ``baseline``, that checkout's command too."""
     robust, robust_err = _solver_times(METHODS.build({"name": "robust"}), pairs)
     icp, icp_err = _solver_times(METHODS.build({"name": "icp_point"}), pairs)
     register = [sys.executable, "-m", "train.register", "source=src.ply", "target=tgt.ply"]
@@ -123,6 +128,9 @@ def measure(pairs, folder: Path, commands: int, compare: dict | None) -> dict[st
     }
     row["solver_vs_icp"] = row["solver_s"] / row["icp_s"]
     row["command_vs_import_torch"] = command / floor
+    if baseline is not None:
+        row["baseline_command_s"] = _wall(register, folder, commands, root=baseline)
+        row["command_vs_baseline"] = command / row["baseline_command_s"]
     if compare is not None:
         other, other_err = _solver_times(METHODS.build(compare), pairs)
         row["compared_s"] = statistics.median(other)
@@ -162,15 +170,16 @@ class ScanPair(NamedTuple):
     truth: np.ndarray
 
 
-def _register_runs(arguments: list[str], folder: Path, repeats: int) -> tuple[float, dict]:
-    """Median wall-clock seconds of ``python -m train.register <arguments>`` and its last ``result.json``."""
+def _register_runs(arguments: list[str], folder: Path, repeats: int, root: Path = ROOT) -> tuple[float, dict]:
+    """Median wall-clock seconds of ``python -m train.register <arguments>`` (the checkout ``root``'s)
+    and its last ``result.json``."""
     folder.mkdir()
     times = []
     for run in range(repeats):
         out = folder / f"run{run}"
         command = [sys.executable, "-m", "train.register", *arguments, f"hydra.run.dir={out}"]
         start = time.perf_counter()
-        done = subprocess.run(command, cwd=folder, env=_env(), capture_output=True, text=True)
+        done = subprocess.run(command, cwd=folder, env=_env(root), capture_output=True, text=True)
         times.append(time.perf_counter() - start)
         if done.returncode != 0:
             lines = (done.stderr or done.stdout).strip().splitlines() or ["no output"]
@@ -239,10 +248,11 @@ def scan_pairs(data: Path, folder: Path, fragments: int, points: int) -> list[Sc
     return found
 
 
-def measure_scans(pairs: list[ScanPair], folder: Path, repeats: int) -> dict[str, dict]:
+def measure_scans(pairs: list[ScanPair], folder: Path, repeats: int, baseline: Path | None = None) -> dict[str, dict]:
     """One row per pair: the command's and the reference's times, their ratio, both methods'
     errors and ``confident`` flags, and the command's path (``local``: the first round's answer
-    kept; ``global``: global candidates ran, ``global_candidates`` of them)."""
+    kept; ``global``: global candidates ran, ``global_candidates`` of them); with ``baseline``, that
+    checkout's command time, ratio and flag."""
     rows = {}
     for number, pair in enumerate(pairs):
         place = folder / f"pair{number}"
@@ -270,6 +280,14 @@ def measure_scans(pairs: list[ScanPair], folder: Path, repeats: int) -> dict[str
             "fpfh_ransac_translation_error": ref_t,
             "fpfh_ransac_confident": ref_report["confident"],
         }
+        if baseline is not None:
+            before, before_report = _register_runs(arguments, place / "baseline", repeats, root=baseline)
+            rows[pair.name].update(
+                baseline_command_s=before,
+                command_vs_baseline=command / before,
+                baseline_err_r_deg=pose_errors(before_report["transform"], pair.truth)[0],
+                baseline_confident=before_report["confident"],
+            )
         print(f"{pair.name}: {rows[pair.name]}", file=sys.stderr, flush=True)
     return rows
 
@@ -317,6 +335,13 @@ def print_scans(rows: dict[str, dict], repeats: int) -> None:
             f"| {path} | {row['pairs']} | {row['share']:.0%} | {row['command_s_median']:.2f} "
             f"| {row['command_s_max']:.2f} | {row['command_vs_fpfh_ransac_median']:.2f}x |"
         )
+    if all("command_vs_baseline" in row for row in rows.values()):
+        ratios = [row["command_vs_baseline"] for row in rows.values()]
+        flips = [name for name, row in rows.items() if row["confident"] != row["baseline_confident"]]
+        print(
+            f"\ncommand / baseline command: median {statistics.median(ratios):.2f}x, largest {max(ratios):.2f}x; "
+            f"confident changed on: {', '.join(flips) or 'none'}"
+        )
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -329,7 +354,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--repeats", type=int, default=2, help="runs of each command with --scans")
     parser.add_argument("--fragments", type=int, default=16, help="room-fragment pairs with --scans (4 bins)")
     parser.add_argument("--fragment-points", type=int, default=100_000, help="points of each fragment with --scans")
+    parser.add_argument("--baseline", type=Path, help="another checkout of linereg whose command is timed beside")
     args = parser.parse_args(argv)
+    if args.baseline is not None and not (args.baseline / "train" / "register.py").is_file():
+        parser.error(f"--baseline {args.baseline}: not a checkout of linereg (no train/register.py)")
     if args.compare is not None:
         METHODS.build(args.compare)  # a bad config fails here, before any timing
     data = shared_data_dir()
@@ -338,7 +366,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.scans:
         with tempfile.TemporaryDirectory() as folder:
             pairs = scan_pairs(data, Path(folder), args.fragments, args.fragment_points)
-            rows = measure_scans(pairs, Path(folder), args.repeats)
+            rows = measure_scans(pairs, Path(folder), args.repeats, args.baseline)
         if not rows:
             parser.error(f"no scan pair was found under {data}")
         if args.json:
@@ -354,11 +382,11 @@ def main(argv: list[str] | None = None) -> int:
         folder = Path(folder)
         write_point_cloud(folder / "src.ply", pairs[1].src_xyz)
         write_point_cloud(folder / "tgt.ply", pairs[1].tgt_xyz)
-        rows["quiet"] = measure(pairs, folder, args.commands, args.compare)
+        rows["quiet"] = measure(pairs, folder, args.commands, args.compare, args.baseline)
         spinner = multiprocessing.Process(target=_spin, daemon=True)
         spinner.start()
         try:
-            rows["busy core"] = measure(pairs, folder, args.commands, args.compare)
+            rows["busy core"] = measure(pairs, folder, args.commands, args.compare, args.baseline)
         finally:
             spinner.terminate()
             spinner.join()
@@ -388,6 +416,11 @@ def main(argv: list[str] | None = None) -> int:
                 f"| {name} | {row['compared_s']:.2f} | {row['compared_err_r_deg_median']:.3f} "
                 f"| {row['compared_vs_icp']:.0f}x | {row['solver_s'] / row['compared_s']:.2f}x |"
             )
+    if args.baseline is not None:
+        print(f"\ncommand / the command of {args.baseline}, same pairs:")
+        for name, row in rows.items():
+            times = f"{row['command_s']:.2f} s / {row['baseline_command_s']:.2f} s"
+            print(f"- {name}: {times} = {row['command_vs_baseline']:.2f}x")
     busy = rows["busy core"]
     print(
         f"\nbusy core / quiet: solver {busy['solver_s_busy_vs_quiet']:.2f}x, "

@@ -7,7 +7,7 @@ given ``(seed, index)``. :func:`linereg.datasets.collate.collate_pairs` batches 
 :class:`~linereg.structures.PairBatch`.
 
 Registered datasets (``DATASETS.names()``): ``procedural`` (default, no files), ``mesh_folder``,
-``modelnet40``, ``threedmatch``, ``rgbd_sequence``, ``pairs_folder``, ``concat`` (several
+``modelnet40``, ``threedmatch``, ``rgbd_sequence``, ``pairs_folder``, ``scan_folder``, ``concat`` (several
 datasets, optionally split), ``cached`` (a cache folder written by
 ``scripts/prepare_dataset.py``).
 
@@ -29,6 +29,7 @@ from linereg.datasets import (  # noqa: F401  (importing registers the builders)
     pairs_folder,
     procedural,
     rgbd,
+    scan_folder,
     shape_sources,
     threedmatch,
 )

@@ -128,10 +128,10 @@ def test_unsupervised_run_without_any_ground_truth(tmp_path):
     _unlabelled_pairs(data)
     overrides = ["dataset=pairs_folder", f"dataset.root={data}", "dataset.splits.val={}", "loss.num_lines=300"]
     cfg = tiny_config(tmp_path / "run", *SMALL_RUN, *overrides, debug=None)
-    with pytest.warns(UserWarning, match="selecting the best checkpoint by val/loss"):
+    with pytest.warns(UserWarning, match="selecting the best checkpoint by register's check"):
         result = loop.train(cfg)
     metrics = result["metrics"]
-    assert "val/loss" in metrics and "test/err_r_deg_mean" not in metrics
+    assert "val/loss" in metrics and "val/check_score" in metrics and "test/err_r_deg_mean" not in metrics
     assert json.loads((tmp_path / "run" / "evaluation" / "metrics.json").read_text())["labelled"] is False
 
 

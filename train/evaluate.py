@@ -120,17 +120,20 @@ class Evaluation:
         return values
 
     def assessment_means(self) -> dict[str, float]:
-        """``fitness_mean``, ``inlier_rmse_mean`` (over the pairs with inliers; NaN without any) and
-        ``confident_share`` of the assessed pairs (empty when not assessed)."""
+        """``fitness_mean``, ``inlier_rmse_mean`` (over the pairs with inliers; NaN without any),
+        ``confident_share`` and ``check_score`` (``confident_share + fitness_mean``, the label-free score
+        validation chooses checkpoints by) of the assessed pairs (empty when not assessed)."""
         if not self.assessments:
             return {}
         fitness = np.array([a.fitness for a in self.assessments])
         rmse = np.array([a.inlier_rmse for a in self.assessments])
         with_inliers = fitness > 0
+        confident_share = float(np.mean([a.confident for a in self.assessments]))
         return {
             "fitness_mean": float(fitness.mean()),
             "inlier_rmse_mean": float(rmse[with_inliers].mean()) if with_inliers.any() else float("nan"),
-            "confident_share": float(np.mean([a.confident for a in self.assessments])),
+            "confident_share": confident_share,
+            "check_score": confident_share + float(fitness.mean()),
         }
 
 
@@ -437,7 +440,7 @@ def evaluate(cfg: DictConfig) -> dict[str, Any]:
     if dataset is None:
         raise ValueError(f"dataset {dataset_config.get('name')!r} has no {cfg.split!r} split")
     loss = build_loss(stored["loss"]).to(device) if cfg.with_loss else None
-    if loss is not None and loss.needs_gt and not _labelled(dataset):
+    if loss is not None and loss.needs_gt and not is_labelled(dataset):
         loss = None
     loader = distributed.make_loader(
         dataset,
@@ -487,7 +490,7 @@ def iterate_rule(stored: Mapping[str, Any], overrides: Mapping[str, Any] | None)
     return IterateRule.from_config(chosen)
 
 
-def _labelled(dataset: Dataset) -> bool:
+def is_labelled(dataset: Dataset) -> bool:
     """Whether the first pair of ``dataset`` has a ground-truth transform."""
     return len(dataset) > 0 and dataset[0].gt_transform is not None
 

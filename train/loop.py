@@ -12,6 +12,10 @@ One run::
        ``evaluate_split`` (printed table, ``evaluation/``)
     -> ``metrics.json`` in the run folder (``evaluated_checkpoint``: which file, which epoch)
 
+Unlabelled validation pairs are scored by register's check (``val/check_score``), which then
+chooses ``best.pt``. A fine-tuning run (``init_from``) keeps its start network's points, cube and
+iterate rule (:mod:`linereg.train.fine_tune`), and the start network is epoch 0's candidate.
+
 The loss trains on every iterate the model returns; validation and evaluation measure the
 errors of the iterate the config's ``iterate`` block chooses (:mod:`linereg.train.validation`).
 
@@ -55,8 +59,10 @@ from linereg.train.checkpoint import load_resume_checkpoint, save_checkpoint
 from linereg.train.curriculum import Curriculum, Stage
 from linereg.train.diagnostics import describe_non_finite_loss
 from linereg.train.epoch import EpochSums
+from linereg.train.evaluate import is_labelled
 from linereg.train.faults import kill_point
 from linereg.train.figures import registration_figure
+from linereg.train.fine_tune import keep_start_settings
 from linereg.train.logging import RunLogger
 from linereg.train.optim import OPTIMIZERS, SCHEDULERS
 from linereg.train.resume import config_for_resume, resume_checkpoint
@@ -107,6 +113,7 @@ class Trainer:
         self.initial_metrics: dict[str, float] = {}
         self.train_data = None
         self.val_data = None
+        self.assess_val = False
         self.logger: RunLogger | None = None
 
     # ----------------------------------------------------------------------------- state
@@ -355,7 +362,9 @@ class Trainer:
             return {}
         logger_config = self.config["logger"]
         keep = logger_config.get("num_figures", 0) if logger_config.get("tensorboard") else 0
-        evaluation = self.evaluator.evaluate(self.val_data, keep=keep, max_batches=self.settings.max_eval_batches)
+        evaluation = self.evaluator.evaluate(
+            self.val_data, keep=keep, max_batches=self.settings.max_eval_batches, assess=self.assess_val
+        )
         metrics = {f"val/{k}": v for k, v in evaluation.metrics(self.settings.alphas).items()}
         if self.logger is not None:
             self.logger.scalars(metrics, self.global_step)
@@ -393,6 +402,7 @@ class Trainer:
     def _run_epochs(self) -> None:
         """Train, validate and checkpoint every remaining epoch."""
         self.val_data = build_split(self.config["dataset"], "val", progress=self.settings.progress and self.ctx.is_main)
+        self.assess_val = self.val_data is not None and not is_labelled(self.val_data)
         if self.settings.untrained:
             self._save_initial_model()
             return
@@ -404,6 +414,8 @@ class Trainer:
                     log.info(
                         "before training: %s %.4g", self.monitor.metric, initial.get(self.monitor.metric, math.nan)
                     )
+                if self.config.get("init_from"):
+                    self._keep_start_as_candidate(initial)
             self._enter_stage(0)
         total = self.curriculum.total_epochs
         while self.epoch < total:
@@ -421,8 +433,7 @@ class Trainer:
             self.epoch += 1
             self.logger.scalars({f"epoch/{k}": v for k, v in train_means.items()}, self.global_step)
             self.logger.scalars({"epoch": self.epoch}, self.global_step)
-            monitored = self.monitor.read(metrics)
-            improved = self.monitor.update(monitored, self.epoch)
+            monitored, improved = self.monitor.observe(metrics, self.epoch)
             if self.ctx.is_main:
                 state = self.state_dict(metrics)
                 # best.pt first: a kill between the two writes resumes from the previous last.pt,
@@ -441,6 +452,14 @@ class Trainer:
                 )
             self.logger.flush()
             distributed.barrier(self.ctx)
+
+    def _keep_start_as_candidate(self, initial: Mapping[str, float]) -> None:
+        """Fine-tuning: the start network's validation ``initial`` is epoch 0's, a candidate for
+        ``best.pt``, so a run never ends worse than its start by its own criterion."""
+        monitored, improved = self.monitor.observe(initial, 0)
+        if improved and self.ctx.is_main:
+            save_checkpoint(self.state_dict(initial), self.checkpoints / BEST)
+            log.info("the start network is epoch 0's candidate: %s %.4g", self.monitor.metric, monitored)
 
     def _save_initial_model(self) -> None:
         """``trainer.untrained``: validate the initial model and write it as ``last.pt`` (no epoch runs)."""
@@ -543,9 +562,11 @@ def train(cfg: DictConfig) -> dict[str, Any]:
     """
     ctx = distributed.setup(cfg.trainer.device)
     try:
+        overrides = list(HydraConfig.get().overrides.task) if HydraConfig.initialized() else None
+        if cfg.get("init_from"):
+            keep_start_settings(cfg, overrides)
         config = OmegaConf.to_container(cfg, resolve=True)
         output_dir = Path(config["paths"]["output_dir"])
-        overrides = list(HydraConfig.get().overrides.task) if HydraConfig.initialized() else None
         resume_file = distributed.broadcast_object(
             resume_checkpoint(config.get("resume"), output_dir, overrides) if ctx.is_main else None, ctx
         )

@@ -23,9 +23,16 @@ from torch.utils.data import Dataset
 
 from linereg.registration.iterates import IterateRule
 from linereg.train import distributed
-from linereg.train.evaluate import Evaluation, evaluate_model, report, write_evaluation
+from linereg.train.evaluate import Evaluation, evaluate_model, is_labelled, report, write_evaluation
 from linereg.train.randomness import seed_evaluation
 from linereg.train.settings import TrainerSettings
+
+CHECK_SCORE = "val/check_score"
+"""The label-free validation score: register's check of the network's poses on the validation pairs,
+confident share + mean fitness (:meth:`linereg.train.evaluate.Evaluation.assessment_means`)."""
+
+TIE_BREAK = "val/loss"
+"""What decides between two epochs of equal :data:`CHECK_SCORE` (lower wins)."""
 
 
 @dataclass
@@ -33,30 +40,38 @@ class Monitor:
     """The validation metric that chooses ``best.pt``, and its best value so far.
 
     Attributes:
-        metric: the monitored key (``trainer.monitor``); becomes ``val/loss`` when the
-            validation data has no ground truth.
+        metric: the monitored key (``trainer.monitor``); on validation data without ground truth
+            :data:`CHECK_SCORE` (higher is better; ties go to the lower :data:`TIE_BREAK`), else
+            ``val/loss`` without a check.
         mode: ``"min"`` or ``"max"``.
         value: the best value so far (``None``: none yet).
-        epoch: the epoch that reached it.
+        epoch: the epoch that reached it (0: the initial weights).
+        tie: its :data:`TIE_BREAK` value (:data:`CHECK_SCORE` only).
     """
 
     metric: str
     mode: str = "min"
     value: float | None = None
     epoch: int | None = None
+    tie: float | None = None
+
+    def __post_init__(self) -> None:
+        if self.metric == CHECK_SCORE:
+            self.mode = "max"
 
     def state(self) -> dict[str, Any]:
-        """``{"metric", "value", "epoch"}``: the ``best`` entry of a checkpoint."""
-        return {"metric": self.metric, "value": self.value, "epoch": self.epoch}
+        """``{"metric", "mode", "value", "epoch", "tie"}``: the ``best`` entry of a checkpoint."""
+        return {"metric": self.metric, "mode": self.mode, "value": self.value, "epoch": self.epoch, "tie": self.tie}
 
     def load(self, state: Mapping[str, Any]) -> None:
         """Restore :meth:`state`."""
         self.metric = state.get("metric") or self.metric
-        self.value, self.epoch = state["value"], state["epoch"]
+        self.mode = state.get("mode") or self.mode
+        self.value, self.epoch, self.tie = state["value"], state["epoch"], state.get("tie")
 
     def read(self, metrics: Mapping[str, float]) -> float | None:
-        """The monitored value in ``metrics`` (``None`` when empty); falls back to ``val/loss``
-        on unlabelled validation data, with a warning.
+        """The monitored value in ``metrics`` (``None`` when empty); on unlabelled validation data
+        falls back to :data:`CHECK_SCORE` (else ``val/loss``), with a warning.
 
         Raises:
             KeyError: the metric is not among the validation metrics (they are listed).
@@ -65,25 +80,46 @@ class Monitor:
             return None
         if self.metric not in metrics:
             if "val/loss" in metrics and "val/err_r_deg_mean" not in metrics:
+                fallback = CHECK_SCORE if CHECK_SCORE in metrics else "val/loss"
+                how = (
+                    f"register's check of the validation pairs ({CHECK_SCORE}: confident share + mean fitness, "
+                    f"ties by {TIE_BREAK})"
+                    if fallback == CHECK_SCORE
+                    else "val/loss"
+                )
                 warnings.warn(
                     f"trainer.monitor={self.metric!r} is unavailable (the validation data has no ground truth); "
-                    "selecting the best checkpoint by val/loss",
-                    stacklevel=2,
+                    f"selecting the best checkpoint by {how}",
+                    stacklevel=3,
                 )
-                self.metric = "val/loss"
+                self.metric, self.mode = fallback, "max" if fallback == CHECK_SCORE else self.mode
             else:
                 raise KeyError(
                     f"trainer.monitor={self.metric!r} is not a validation metric; available: {sorted(metrics)}"
                 )
         return float(metrics[self.metric])
 
-    def update(self, value: float | None, epoch: int) -> bool:
-        """Record ``value`` of ``epoch`` when it beats the best so far; whether it did."""
+    def observe(self, metrics: Mapping[str, float], epoch: int) -> tuple[float | None, bool]:
+        """Read ``metrics`` of ``epoch`` and record them when they beat the best so far.
+
+        Returns:
+            The monitored value (``None`` without metrics) and whether it is the new best.
+        """
+        value = self.read(metrics)
+        tie = metrics.get(TIE_BREAK) if self.metric == CHECK_SCORE else None
+        return value, self.update(value, epoch, tie)
+
+    def update(self, value: float | None, epoch: int, tie: float | None = None) -> bool:
+        """Record ``value`` of ``epoch`` when it beats the best so far (an equal value with a lower
+        ``tie`` does too); whether it did."""
         if value is None or not math.isfinite(value):
             return False
-        if self.value is not None and not (value < self.value if self.mode == "min" else value > self.value):
-            return False
-        self.value, self.epoch = value, epoch
+        if self.value is not None:
+            better = value < self.value if self.mode == "min" else value > self.value
+            breaks_tie = value == self.value and tie is not None and self.tie is not None and tie < self.tie
+            if not (better or breaks_tie):
+                return False
+        self.value, self.epoch, self.tie = value, epoch, tie
         return True
 
 
@@ -121,9 +157,16 @@ class RunEvaluator:
         self.seed = seed
 
     def evaluate(
-        self, dataset: Dataset, *, keep: int = 0, description: str = "validate", max_batches: int | None = None
+        self,
+        dataset: Dataset,
+        *,
+        keep: int = 0,
+        description: str = "validate",
+        max_batches: int | None = None,
+        assess: bool = False,
     ) -> Evaluation:
-        """The model on ``dataset`` (this process only; ``max_batches``: a prefix; ``keep``: pairs for figures)."""
+        """The model on ``dataset`` (this process only; ``max_batches``: a prefix; ``keep``: pairs for
+        figures; ``assess``: register's check of every pose, :func:`~linereg.train.evaluate.assess_pairs`)."""
         seed_evaluation(self.loss, self.seed)
         loader = distributed.make_loader(
             dataset,
@@ -143,6 +186,7 @@ class RunEvaluator:
             progress=self.settings.progress,
             description=description,
             iterate=self.iterate,
+            assess=assess,
         )
 
     def final(
@@ -153,7 +197,7 @@ class RunEvaluator:
         Returns:
             ``{"<split>/<metric>": value}``, and ``"<split>/identity/<metric>"`` on labelled data.
         """
-        evaluation = self.evaluate(dataset, keep=keep, description=split)
+        evaluation = self.evaluate(dataset, keep=keep, description=split, assess=not is_labelled(dataset))
         alphas = self.settings.alphas
         write_evaluation(evaluation, out_dir, name=name, alphas=alphas, info={**info, "iterate": self.iterate_info()})
         metrics = {f"{split}/{k}": v for k, v in evaluation.metrics(alphas).items()}

@@ -19,7 +19,8 @@ alike (:func:`~linereg.registration.evaluation.assess_registration`).
 from typing import Any
 
 from linereg.registration import robust
-from linereg.registration.api import LearnedRegistration, RegistrationResult, register
+from linereg.registration.api import RegistrationResult, register
+from linereg.registration.learned import LearnedRegistration
 from linereg.registration.methods import METHODS, Method, MethodResult, run_centered, run_with_init
 
 __all__ = [

@@ -15,7 +15,6 @@
 
 from __future__ import annotations
 
-import functools
 import os
 import time
 from collections.abc import Mapping
@@ -27,19 +26,16 @@ import numpy as np
 
 from linereg import pretrained
 from linereg.checks import as_rigid_transform, check_points, is_tensor
-from linereg.fps import farthest_point_subset as fps
 from linereg.io import PointCloud, read_point_cloud
-from linereg.registration.evaluation import Assessment, assess_registration
-from linereg.registration.methods import METHODS, MethodResult, run_centered, run_with_init
+from linereg.registration.evaluation import assess_registration
+from linereg.registration.learned import LearnedRegistration
+from linereg.registration.methods import METHODS, MethodResult
 from linereg.registration.similarity import scale_guesses, scale_of, similarity_polish, with_scale
 from linereg.registration.trust import surface_points
 from linereg.registry import UnknownNameError
 
 DEFAULT_METHOD = "robust"
 _MIN_POINTS = 3
-POLISH_ONLY = {"starts": 1, "coarse_steps": 0, "rounds": 1, "global_candidates": "never"}
-"""The solver's options of the polish that finishes a network's pose: from that pose alone, no
-coarse stage, no later round, no global candidates (the Welsch IRLS polish and the fine steps)."""
 
 
 @dataclass
@@ -116,156 +112,6 @@ def _checked_init(init: Any) -> np.ndarray | None:
         return None
     transform = init.detach().cpu().numpy() if is_tensor(init) else np.asarray(init, dtype=np.float64)
     return as_rigid_transform(transform, "init")
-
-
-class LearnedRegistration:
-    """A network trained by ``python -m train`` as a registration method, optionally refined.
-
-    The clouds are centred, farthest-point sampled to the run's ``trainer.num_points``, scaled
-    together into the cube its training pairs were scaled into (:func:`training_half_extent`),
-    given normals (estimated on the subsets); of the model's iterates, the one the run's ``iterate`` rule chooses
-    (:mod:`linereg.registration.iterates`, from the checkpoint's config) is mapped back to the
-    original frames.
-
-    Args:
-        checkpoint: a checkpoint file, a run folder (the checkpoint the run evaluated, else
-            ``best.pt``) or a pretrained name (:mod:`linereg.pretrained`).
-        device: torch device of the model.
-        num_points: points per cloud fed to the model (``None``: the run's ``trainer.num_points``).
-        refine: finish the network's pose with the solver (:meth:`finish`): a local polish from it,
-            register's check, and the whole solver only when the check fails; a mapping gives
-            :class:`~linereg.registration.robust.RobustOptions` fields of both (numpy, on the CPU
-            whatever ``device``).
-    """
-
-    def __init__(
-        self,
-        checkpoint: str | Path,
-        *,
-        device: str | Any = "cpu",
-        num_points: int | None = None,
-        refine: bool | Mapping[str, Any] = False,
-    ) -> None:
-        import torch
-
-        from linereg.registration.iterates import IterateRule
-
-        self.model, state = _loaded(str(checkpoint), str(device))
-        self.device = torch.device(device)
-        self.checkpoint = state["path"]
-        self.iterate = IterateRule.from_config(state["config"].get("iterate"))
-        self.num_points = num_points or state["config"].get("trainer", {}).get("num_points") or 1024
-        self.half_extent = training_half_extent(state["config"].get("dataset") or {})
-        self.polisher = self.solver = None
-        if refine:
-            options = dict(refine) if isinstance(refine, Mapping) else {}
-            self.polisher = METHODS.build({"name": DEFAULT_METHOD, "options": {**POLISH_ONLY, **options}})
-            self.solver = METHODS.build({"name": DEFAULT_METHOD, "options": options})
-
-    def _predict(self, src, tgt, src_normals, tgt_normals) -> MethodResult:
-        import torch
-
-        from linereg.datasets.protocol import scale_transform
-        from linereg.pointcloud import estimate_normals, fit_into_cube
-        from linereg.structures import PairBatch
-
-        src_s, tgt_s = fps(src, self.num_points), fps(tgt, self.num_points)
-        center, scale = np.zeros(3), 1.0  # half_extent None: the clouds' own units
-        clouds = (src_s, tgt_s)
-        if self.half_extent is not None:
-            clouds, center, scale = fit_into_cube(src_s, tgt_s, half_extent=self.half_extent)
-        normals = [estimate_normals(cloud) for cloud in clouds]
-        batch = PairBatch(
-            src_xyz=torch.from_numpy(clouds[0]).float()[None],
-            tgt_xyz=torch.from_numpy(clouds[1]).float()[None],
-            src_normals=torch.from_numpy(normals[0]).float()[None],
-            tgt_normals=torch.from_numpy(normals[1]).float()[None],
-        ).to(self.device)
-        with torch.no_grad():
-            output = self.model(batch)
-            chosen, _ = self.iterate.select(output.transforms, batch.src_xyz, batch.tgt_xyz)
-        # back to the original frames: the inverse of x' = (x - c) s is x = (x' + c s) / s
-        transform = scale_transform(chosen[0].double().cpu().numpy(), -center * scale, 1.0 / scale)
-        return MethodResult(transform=transform)
-
-    def __call__(self, src, tgt, src_normals=None, tgt_normals=None) -> MethodResult:
-        """Register ``src (N, 3)`` onto ``tgt (M, 3)`` (numpy); normals are re-estimated on the subsets."""
-        predicted = run_centered(self._predict, src, tgt)
-        info: dict[str, Any] = {
-            "checkpoint": self.checkpoint,
-            "iterate": self.iterate.as_config(),
-            "network_transform": predicted.transform.tolist(),
-        }
-        if self.polisher is None:
-            return MethodResult(
-                transform=predicted.transform, seconds=predicted.seconds, info={**info, "path": "network"}
-            )
-        finished = self.finish(src, tgt, predicted.transform)
-        return MethodResult(
-            transform=finished.transform,
-            seconds=predicted.seconds + finished.seconds,
-            info={**info, **finished.info},
-        )
-
-    def finish(self, src: np.ndarray, tgt: np.ndarray, start: np.ndarray) -> MethodResult:
-        """The network's pose ``start (4, 4)`` finished on ``src (N, 3)`` and ``tgt (M, 3)`` in their own
-        units: a local polish from it (:data:`POLISH_ONLY`); when register's check
-        (:func:`~linereg.registration.evaluation.assess_registration`) does not trust it, the whole
-        solver from scratch, whose answer replaces the polished one only when the check prefers it
-        (:func:`preferred`). ``info["path"]``: ``"polished network"`` or ``"solver"``, with
-        ``"solver_ran"``."""
-        began = time.perf_counter()
-        polished = run_with_init(self.polisher, src, tgt, init=start)
-        judged = assess_registration(src, tgt, polished.transform)
-        info = {"solver_ran": False, "polished_confident": judged.confident}
-        if judged.confident:
-            seconds = time.perf_counter() - began
-            return MethodResult(polished.transform, seconds, {**polished.info, **info, "path": "polished network"})
-        solved = self.solver(src, tgt)
-        rival = assess_registration(src, tgt, solved.transform)
-        info["solver_ran"] = True
-        winner, path = (solved, "solver") if preferred(rival, judged) else (polished, "polished network")
-        return MethodResult(winner.transform, time.perf_counter() - began, {**winner.info, **info, "path": path})
-
-
-@functools.lru_cache(maxsize=4)
-def _loaded(checkpoint: str, device: str):
-    """:func:`linereg.models.load_model`, once per checkpoint and device in a process (the model is
-    only read: evaluation mode, ``torch.no_grad``)."""
-    from linereg.models import load_model
-
-    return load_model(checkpoint, device)
-
-
-def preferred(first: Assessment, second: Assessment) -> bool:
-    """Whether register's check prefers the answer judged ``first`` to the one judged ``second``:
-    confident before not, then the larger tight fitness (the share near the target at 1.5 point
-    spacings), then the larger fitness."""
-
-    def rank(judged: Assessment) -> tuple[bool, float, float]:
-        tight = judged.tight_fitness if np.isfinite(judged.tight_fitness) else -1.0
-        return judged.confident, tight, judged.fitness
-
-    return rank(first) > rank(second)
-
-
-def training_half_extent(dataset: Mapping[str, Any]) -> float | None:
-    """Half the side of the cube ``[-h, h]^3`` a run's pairs were scaled into, from its dataset config
-    (``half_extent`` of the dataset or of its pair protocol, else the dataset builder's default;
-    ``None``: the clouds' own units)."""
-    import inspect
-
-    from linereg.datasets import DATASETS
-
-    for section in (dataset, dataset.get("protocol") or {}):
-        if "half_extent" in section:
-            return section["half_extent"]
-    name = dataset.get("name")
-    if name in DATASETS.names():
-        parameter = inspect.signature(DATASETS.get(name)).parameters.get("half_extent")
-        if parameter is not None and parameter.default is not inspect.Parameter.empty:
-            return parameter.default
-    return 1.0
 
 
 def quality(

@@ -111,19 +111,24 @@ def test_a_trained_network_registers_and_the_refinement_recovers_the_pose(pair, 
 
 
 def _answering(transform: np.ndarray):
-    """A ``_predict`` (or solver) stand-in that answers ``transform (4, 4)``."""
+    """A solver stand-in that answers ``transform (4, 4)``."""
     from linereg.registration.methods import MethodResult
 
     return lambda *args, **kwargs: MethodResult(transform=np.array(transform, dtype=np.float64))
 
 
+def _network_answering(transform: np.ndarray):
+    """A ``predict_many`` stand-in whose network answers ``transform (4, 4)`` for every pair."""
+    return lambda self, pairs, *args, **kwargs: [np.array(transform, dtype=np.float64) for _ in pairs]
+
+
 def test_the_finish_polishes_a_right_network_pose_without_the_solver(pair, checkpoint, monkeypatch):
     """A network pose 3 degrees off is polished locally and trusted: the solver never runs."""
-    from linereg.registration.api import LearnedRegistration
+    from linereg.registration.learned import LearnedRegistration
 
     src, tgt, T = pair
     near = pose([3.0, 0.0, 0.0], [0.0, 0.0, 0.0]) @ T
-    monkeypatch.setattr(LearnedRegistration, "_predict", lambda self, *a: _answering(near)())
+    monkeypatch.setattr(LearnedRegistration, "predict_many", _network_answering(near))
     result = linereg.register(src, tgt, method=checkpoint, refine=True)
     assert result.info["path"] == "polished network" and not result.info["solver_ran"]
     assert rotation_error_deg(result.transformation, T) < 0.1 and result.confident
@@ -131,11 +136,11 @@ def test_the_finish_polishes_a_right_network_pose_without_the_solver(pair, check
 
 def test_a_wrong_network_pose_costs_time_not_accuracy(pair, checkpoint, monkeypatch):
     """A network pose 120 degrees off fails the check after its polish: the solver runs and its answer wins."""
-    from linereg.registration.api import LearnedRegistration
+    from linereg.registration.learned import LearnedRegistration
 
     src, tgt, T = pair
     far = pose([120.0, 30.0, 0.0], [0.3, 0.0, 0.0]) @ T
-    monkeypatch.setattr(LearnedRegistration, "_predict", lambda self, *a: _answering(far)())
+    monkeypatch.setattr(LearnedRegistration, "predict_many", _network_answering(far))
     result = linereg.register(src, tgt, method=checkpoint, refine=True)
     assert result.info["solver_ran"] and result.info["path"] == "solver"
     assert rotation_error_deg(result.transformation, T) < 0.5 and result.confident
@@ -143,11 +148,11 @@ def test_a_wrong_network_pose_costs_time_not_accuracy(pair, checkpoint, monkeypa
 
 def test_a_flip_of_the_solver_never_replaces_a_right_network_pose(pair, checkpoint, monkeypatch):
     """When the check doubts the polished network pose and the solver answers a flip, the network's pose stays."""
-    from linereg.registration import api
+    from linereg.registration import learned
     from linereg.registration.robust import RobustRegistration
 
     src, tgt, T = pair
-    monkeypatch.setattr(api.LearnedRegistration, "_predict", lambda self, *a: _answering(T)())
+    monkeypatch.setattr(learned.LearnedRegistration, "predict_many", _network_answering(T))
     flipped = pose([180.0, 0.0, 0.0], [0.0, 0.0, 0.0]) @ T
     real_call = RobustRegistration.__call__
 
@@ -157,7 +162,7 @@ def test_a_flip_of_the_solver_never_replaces_a_right_network_pose(pair, checkpoi
         return _answering(flipped)()
 
     monkeypatch.setattr(RobustRegistration, "__call__", flipping)
-    monkeypatch.setattr(api, "assess_registration", _doubting_the_first(api.assess_registration))
+    monkeypatch.setattr(learned, "assess_registration", _doubting_the_first(learned.assess_registration))
     result = linereg.register(src, tgt, method=checkpoint, refine=True)
     assert result.info["solver_ran"] and result.info["path"] == "polished network"
     assert rotation_error_deg(result.transformation, T) < 0.1

@@ -156,7 +156,7 @@ class _FixedIterates(torch.nn.Module):
 
 @pytest.mark.parametrize(("iterate", "expected_deg"), [(None, 10.0), ({"rule": "best_fit", "keep_fraction": 1.0}, 0.0)])
 def test_a_trained_network_answers_with_its_runs_iterate(tmp_path, iterate, expected_deg):
-    from linereg.registration.api import LearnedRegistration
+    from linereg.registration.learned import LearnedRegistration
     from linereg.se3 import rotation_angle
 
     config = {"name": "rpmnet", "feature_dim": 16, "num_neighbors": 8}

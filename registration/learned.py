@@ -1,0 +1,224 @@
+"""A network trained by ``python -m train`` as a registration method: its pose, and the solver's finish.
+
+::
+
+    learned = LearnedRegistration("rpm_ours_airplane", refine=True)
+    learned(src, tgt)                          # MethodResult: the finished pose, info["path"]
+    learned.predict_many([(src, tgt), ...])    # the network's poses, forward in batches
+
+The network starts and the solver finishes (:meth:`LearnedRegistration.finish`): the network's pose
+is polished locally on the clouds in their own units and judged by register's check; only when the
+check does not trust it does the whole solver run, and its answer replaces the polished network
+pose only when the check prefers it. A wrong network then costs time, never accuracy, and a flip of
+the solver never replaces a right network pose.
+"""
+
+from __future__ import annotations
+
+import functools
+import time
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any, NamedTuple
+
+import numpy as np
+
+from linereg.fps import farthest_point_subset as fps
+from linereg.registration.evaluation import Assessment, assess_registration
+from linereg.registration.methods import METHODS, MethodResult, run_with_init, translation
+
+DEFAULT_SOLVER = "robust"
+
+POLISH_ONLY = {"starts": 1, "coarse_steps": 0, "rounds": 1, "global_candidates": "never"}
+"""The solver's options of the polish that finishes a network's pose: from that pose alone, no
+coarse stage, no later round, no global candidates (the Welsch IRLS polish and the fine steps)."""
+
+
+class _Prepared(NamedTuple):
+    """One pair as the network reads it: FPS subsets in its cube, their normals, and the maps back
+    (the clouds' centroids, then ``x' = (x - center) * scale``)."""
+
+    src: np.ndarray
+    tgt: np.ndarray
+    src_normals: np.ndarray
+    tgt_normals: np.ndarray
+    src_centroid: np.ndarray
+    tgt_centroid: np.ndarray
+    center: np.ndarray
+    scale: float
+
+
+class LearnedRegistration:
+    """A network trained by ``python -m train`` as a registration method, optionally finished by the solver.
+
+    The clouds are centred, farthest-point sampled to the run's ``trainer.num_points``, scaled
+    together into the cube its training pairs were scaled into (:func:`training_half_extent`),
+    given normals (estimated on the subsets); of the model's iterates, the one the run's ``iterate``
+    rule chooses (:mod:`linereg.registration.iterates`, from the checkpoint's config) is mapped back
+    to the original frames.
+
+    Args:
+        checkpoint: a checkpoint file, a run folder (the checkpoint the run evaluated, else
+            ``best.pt``) or a pretrained name (:mod:`linereg.pretrained`).
+        device: torch device of the model (loaded once per process and device).
+        num_points: points per cloud fed to the model (``None``: the run's ``trainer.num_points``).
+        refine: finish the network's pose with the solver (:meth:`finish`); a mapping gives
+            :class:`~linereg.registration.robust.RobustOptions` fields of both the polish and the
+            solver (numpy, on the CPU whatever ``device``).
+    """
+
+    def __init__(
+        self,
+        checkpoint: str | Path,
+        *,
+        device: str | Any = "cpu",
+        num_points: int | None = None,
+        refine: bool | Mapping[str, Any] = False,
+    ) -> None:
+        import torch
+
+        from linereg.registration.iterates import IterateRule
+
+        self.model, state = _loaded(str(checkpoint), str(device))
+        self.device = torch.device(device)
+        self.checkpoint = state["path"]
+        self.iterate = IterateRule.from_config(state["config"].get("iterate"))
+        self.num_points = num_points or state["config"].get("trainer", {}).get("num_points") or 1024
+        self.half_extent = training_half_extent(state["config"].get("dataset") or {})
+        self.polisher = self.solver = None
+        if refine:
+            options = dict(refine) if isinstance(refine, Mapping) else {}
+            self.polisher = METHODS.build({"name": DEFAULT_SOLVER, "options": {**POLISH_ONLY, **options}})
+            self.solver = METHODS.build({"name": DEFAULT_SOLVER, "options": options})
+
+    def _prepare(self, src: np.ndarray, tgt: np.ndarray) -> _Prepared:
+        """``src (N, 3)`` and ``tgt (M, 3)`` as the network reads them."""
+        from linereg.pointcloud import estimate_normals, fit_into_cube
+
+        src_centroid, tgt_centroid = src.mean(axis=0), tgt.mean(axis=0)
+        clouds = (fps(src - src_centroid, self.num_points), fps(tgt - tgt_centroid, self.num_points))
+        center, scale = np.zeros(3), 1.0  # half_extent None: the clouds' own units
+        if self.half_extent is not None:
+            clouds, center, scale = fit_into_cube(*clouds, half_extent=self.half_extent)
+        normals = [estimate_normals(cloud) for cloud in clouds]
+        return _Prepared(*clouds, *normals, src_centroid, tgt_centroid, center, scale)
+
+    def predict_many(self, pairs: Sequence[tuple[np.ndarray, np.ndarray]], batch_size: int = 32) -> list[np.ndarray]:
+        """The network's ``(4, 4)`` pose of every pair ``(src (N, 3), tgt (M, 3))``, in order: pairs
+        whose subsets have the same sizes go through the model together, ``batch_size`` at a time."""
+        from linereg.datasets.protocol import scale_transform
+
+        prepared = [self._prepare(np.asarray(src, np.float64), np.asarray(tgt, np.float64)) for src, tgt in pairs]
+        poses: list[np.ndarray | None] = [None] * len(prepared)
+        groups: dict[tuple[int, int], list[int]] = {}
+        for index, item in enumerate(prepared):
+            groups.setdefault((len(item.src), len(item.tgt)), []).append(index)
+        for members in groups.values():
+            for first in range(0, len(members), batch_size):
+                chunk = members[first : first + batch_size]
+                for index, pose in zip(chunk, self._forward([prepared[i] for i in chunk]), strict=True):
+                    item = prepared[index]
+                    # back to the original frames: the inverse of x' = (x - c) s is x = (x' + c s) / s
+                    centred = scale_transform(pose, -item.center * item.scale, 1.0 / item.scale)
+                    poses[index] = translation(item.tgt_centroid) @ centred @ translation(-item.src_centroid)
+        return poses
+
+    def _forward(self, items: list[_Prepared]) -> np.ndarray:
+        """``(B, 4, 4)`` poses of the chosen iterate for prepared pairs of equal sizes, in the cube."""
+        import torch
+
+        from linereg.structures import PairBatch
+
+        def stacked(field: str):
+            return torch.from_numpy(np.stack([getattr(item, field) for item in items])).float()
+
+        batch = PairBatch(
+            src_xyz=stacked("src"),
+            tgt_xyz=stacked("tgt"),
+            src_normals=stacked("src_normals"),
+            tgt_normals=stacked("tgt_normals"),
+        ).to(self.device)
+        with torch.no_grad():
+            output = self.model(batch)
+            chosen, _ = self.iterate.select(output.transforms, batch.src_xyz, batch.tgt_xyz)
+        return chosen.double().cpu().numpy()
+
+    def __call__(
+        self, src, tgt, src_normals=None, tgt_normals=None, *, start: np.ndarray | None = None
+    ) -> MethodResult:
+        """Register ``src (N, 3)`` onto ``tgt (M, 3)`` (numpy; normals are re-estimated on the subsets);
+        ``start``: the network's pose when already predicted (:meth:`predict_many`)."""
+        began = time.perf_counter()
+        network = self.predict_many([(src, tgt)])[0] if start is None else np.asarray(start, dtype=np.float64)
+        seconds = time.perf_counter() - began
+        info: dict[str, Any] = {
+            "checkpoint": self.checkpoint,
+            "iterate": self.iterate.as_config(),
+            "network_transform": network.tolist(),
+        }
+        if self.polisher is None:
+            return MethodResult(transform=network, seconds=seconds, info={**info, "path": "network"})
+        finished = self.finish(np.asarray(src, np.float64), np.asarray(tgt, np.float64), network)
+        return MethodResult(
+            transform=finished.transform, seconds=seconds + finished.seconds, info={**info, **finished.info}
+        )
+
+    def finish(self, src: np.ndarray, tgt: np.ndarray, start: np.ndarray) -> MethodResult:
+        """The network's pose ``start (4, 4)`` finished on ``src (N, 3)`` and ``tgt (M, 3)`` in their own
+        units: a local polish from it (:data:`POLISH_ONLY`); when register's check
+        (:func:`~linereg.registration.evaluation.assess_registration`) does not trust it, the whole
+        solver from scratch, whose answer replaces the polished one only when the check prefers it
+        (:func:`preferred`). ``info["path"]``: ``"polished network"`` or ``"solver"``, with
+        ``"solver_ran"``."""
+        began = time.perf_counter()
+        polished = run_with_init(self.polisher, src, tgt, init=start)
+        judged = assess_registration(src, tgt, polished.transform)
+        info = {"solver_ran": False, "polished_confident": judged.confident}
+        if judged.confident:
+            seconds = time.perf_counter() - began
+            return MethodResult(polished.transform, seconds, {**polished.info, **info, "path": "polished network"})
+        solved = self.solver(src, tgt)
+        rival = assess_registration(src, tgt, solved.transform)
+        info["solver_ran"] = True
+        winner, path = (solved, "solver") if preferred(rival, judged) else (polished, "polished network")
+        return MethodResult(winner.transform, time.perf_counter() - began, {**winner.info, **info, "path": path})
+
+
+@functools.lru_cache(maxsize=4)
+def _loaded(checkpoint: str, device: str):
+    """:func:`linereg.models.load_model`, once per checkpoint and device in a process (the model is
+    only read: evaluation mode, ``torch.no_grad``)."""
+    from linereg.models import load_model
+
+    return load_model(checkpoint, device)
+
+
+def preferred(first: Assessment, second: Assessment) -> bool:
+    """Whether register's check prefers the answer judged ``first`` to the one judged ``second``:
+    confident before not, then the larger tight fitness (the share near the target at 1.5 point
+    spacings), then the larger fitness."""
+
+    def rank(judged: Assessment) -> tuple[bool, float, float]:
+        tight = judged.tight_fitness if np.isfinite(judged.tight_fitness) else -1.0
+        return judged.confident, tight, judged.fitness
+
+    return rank(first) > rank(second)
+
+
+def training_half_extent(dataset: Mapping[str, Any]) -> float | None:
+    """Half the side of the cube ``[-h, h]^3`` a run's pairs were scaled into, from its dataset config
+    (``half_extent`` of the dataset or of its pair protocol, else the dataset builder's default;
+    ``None``: the clouds' own units)."""
+    import inspect
+
+    from linereg.datasets import DATASETS
+
+    for section in (dataset, dataset.get("protocol") or {}):
+        if "half_extent" in section:
+            return section["half_extent"]
+    name = dataset.get("name")
+    if name in DATASETS.names():
+        parameter = inspect.signature(DATASETS.get(name)).parameters.get("half_extent")
+        if parameter is not None and parameter.default is not inspect.Parameter.empty:
+            return parameter.default
+    return 1.0

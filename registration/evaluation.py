@@ -84,9 +84,11 @@ def _inlier_quality(distances: np.ndarray, threshold: float) -> RegistrationQual
 
 
 def point_spacing(points: np.ndarray, index: NearestNeighbors | None = None) -> float:
-    """Median distance of a point of ``points (N, 3)`` to its nearest other point (``index``: of ``points``)."""
-    distances, _ = (index or NearestNeighbors(points)).query(points, k=2)
-    return float(np.median(distances[:, 1]))
+    """Median distance of a point of ``points (N, 3)`` to its nearest other point (``index``: of
+    ``points``); a point repeated up to 3 times counts once (its nearest point elsewhere)."""
+    distances, _ = (index or NearestNeighbors(points)).query(points, k=min(len(points), 5))
+    elsewhere = np.where(distances[:, 1:] > 0, distances[:, 1:], np.inf).min(axis=1)
+    return float(np.median(elsewhere[np.isfinite(elsewhere)])) if np.isfinite(elsewhere).any() else 0.0
 
 
 def sampling_distance(points: np.ndarray, seed: int = 0) -> float:

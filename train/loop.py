@@ -410,12 +410,10 @@ class Trainer:
             if self.settings.val_before_training:
                 initial = self._validate()
                 self.initial_metrics = {key.replace("val/", "val_initial/", 1): v for key, v in initial.items()}
-                if self.initial_metrics:
-                    log.info(
-                        "before training: %s %.4g", self.monitor.metric, initial.get(self.monitor.metric, math.nan)
-                    )
                 if self.config.get("init_from"):
                     self._keep_start_as_candidate(initial)
+                elif self.initial_metrics:
+                    log.info("before training: %s %.4g", self.monitor.metric, self.monitor.read(initial))
             self._enter_stage(0)
         total = self.curriculum.total_epochs
         while self.epoch < total:

@@ -22,7 +22,7 @@ from pathlib import Path
 from typing import Any
 
 __version__ = "0.1.0"
-__all__ = ["RegistrationResult", "__version__", "register"]
+__all__ = ["RegistrationResult", "__version__", "register", "register_many"]
 
 # In a source checkout the subpackages live in top-level folders (losses/, models/, ...) next to
 # this one; the wheel maps them into linereg/. Make them importable as linereg.<name> from the
@@ -31,7 +31,11 @@ _CHECKOUT = Path(__file__).resolve().parent.parent
 if not (Path(__file__).resolve().parent / "losses").is_dir() and (_CHECKOUT / "losses" / "__init__.py").is_file():
     __path__.append(str(_CHECKOUT))
 
-_LAZY = {"register": "linereg.registration.api", "RegistrationResult": "linereg.registration.api"}
+_LAZY = {
+    "register": "linereg.registration.api",
+    "register_many": "linereg.registration.many",
+    "RegistrationResult": "linereg.registration.api",
+}
 
 
 def __getattr__(name: str) -> Any:

@@ -21,6 +21,7 @@ from typing import Any
 from linereg.registration import robust
 from linereg.registration.api import RegistrationResult, register
 from linereg.registration.learned import LearnedRegistration
+from linereg.registration.many import register_many
 from linereg.registration.methods import METHODS, Method, MethodResult, run_centered, run_with_init
 
 __all__ = [
@@ -31,6 +32,7 @@ __all__ = [
     "RegistrationResult",
     "baselines",
     "register",
+    "register_many",
     "robust",
     "run_centered",
     "run_with_init",

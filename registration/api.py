@@ -200,8 +200,35 @@ def register(
     tgt, tgt_normals = as_cloud(target, "target")
     initial = _checked_init(init)
     solver, description = _build(method, device, options)
+    return register_clouds(
+        solver,
+        description,
+        (src, src_normals),
+        (tgt, tgt_normals),
+        initial,
+        fitness_threshold=fitness_threshold,
+        scale=scale,
+    )
+
+
+def register_clouds(
+    solver,
+    description: Any,
+    source: tuple[np.ndarray, np.ndarray | None],
+    target: tuple[np.ndarray, np.ndarray | None],
+    initial: np.ndarray | None = None,
+    *,
+    fitness_threshold: float | None = None,
+    scale: bool = False,
+    on_surface: np.ndarray | bool | None = True,
+) -> RegistrationResult:
+    """:func:`register` on checked clouds: ``solver`` (a built method, described by ``description``)
+    on ``source`` and ``target`` (``(points (N, 3), normals or None)`` each), the source moved by
+    ``initial`` first; ``on_surface``: the target's clutter-free points (``True``: found here)."""
+    (src, src_normals), (tgt, tgt_normals) = source, target
     start = time.perf_counter()
-    on_surface = surface_points(tgt, src)
+    if on_surface is True:
+        on_surface = surface_points(tgt, src)
     seen, seen_normals = tgt, tgt_normals
     if on_surface is not None:
         seen, seen_normals = tgt[on_surface], None if tgt_normals is None else tgt_normals[on_surface]

@@ -261,3 +261,26 @@ def test_evaluate_registration_matches_open3d(pair):
         ours = evaluate_registration(src, tgt, distance, transform)
         assert ours.fitness == pytest.approx(theirs.fitness) and ours.inlier_rmse == pytest.approx(theirs.inlier_rmse)
         assert ours.correspondences == len(theirs.correspondence_set)
+
+
+def test_register_many_answers_in_order_as_register_does(pair, checkpoint):
+    """The network's forward in batches gives each pair the pose a single call gives it; results keep the order."""
+    src, tgt, T = pair
+    other = pose([0.0, 10.0, 0.0], [0.0, 0.1, 0.0])
+    pairs = [(src, tgt), (src, src @ other[:3, :3].T + other[:3, 3]), (src, tgt)]
+    many = list(linereg.register_many(pairs, method=checkpoint, batch_size=2, progress=False))
+    assert len(many) == 3
+    for result, (source, target) in zip(many, pairs, strict=True):
+        single = linereg.register(source, target, method=checkpoint)
+        np.testing.assert_allclose(result.transformation, single.transformation, atol=1e-5)
+        assert result.confident == single.confident and result.info["path"] == "network"
+    solved = list(linereg.register_many(iter(pairs[:2]), method="icp_point", progress=False))
+    assert rotation_error_deg(solved[1].transformation, other) < 0.5
+
+
+def test_register_many_names_the_bad_pair(pair):
+    src, tgt, _ = pair
+    with pytest.raises(ValueError, match=r"pairs\[1\] target"):
+        list(linereg.register_many([(src, tgt), (src, np.full((5, 3), np.nan))], method="icp_point", progress=False))
+    with pytest.raises(TypeError, match=r"pairs\[0\]"):
+        list(linereg.register_many([src], progress=False))

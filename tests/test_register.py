@@ -292,3 +292,47 @@ def test_the_robust_solver_runs_in_numpy_on_the_cpu_and_refuses_other_devices(tm
     with pytest.raises(RegisterError, match="method=robust runs on the CPU; device=cuda is not supported"):
         register_files(on_gpu, tmp_path / "run")
     assert not (tmp_path / "run").exists()
+
+
+def test_a_folder_of_pairs_goes_into_one_table_and_resumes(tmp_path, capsys):
+    """``pairs=<folder>``: one row per pair in name order, errors where ground truth exists; a rerun
+    in the same run folder registers only the pairs the table lacks."""
+    import csv
+
+    from linereg.train.register import _register_pairs
+
+    folder = tmp_path / "pairs"
+    folder.mkdir()
+    truths = {}
+    for index, name in enumerate(("b", "a", "c")):
+        T = pose([10.0 * (index + 1), 5.0, 0.0], [0.05, 0.0, 0.02])
+        write_point_cloud(folder / f"{name}_src.ply", surface(600, index))
+        write_point_cloud(folder / f"{name}_tgt.ply", apply(T, surface(600, index)))
+        write_transform(folder / f"{name}_gt.txt", T)
+        truths[name] = T
+    out = tmp_path / "run"
+    (folder / "c_src.ply").rename(tmp_path / "held_back.ply")
+    (folder / "c_tgt.ply").rename(tmp_path / "held_back_tgt.ply")
+    (folder / "c_gt.txt").rename(tmp_path / "held_back_gt.txt")
+    _register_pairs(_compose(pairs=folder, method="icp_point"), out)
+    for kind, target in (("src", "c_src.ply"), ("tgt", "c_tgt.ply"), ("gt", "c_gt.txt")):
+        source = {"src": "held_back.ply", "tgt": "held_back_tgt.ply", "gt": "held_back_gt.txt"}[kind]
+        (tmp_path / source).rename(folder / target)
+    _register_pairs(_compose(pairs=folder, method="icp_point"), out)
+    assert "1 pairs registered (2 already in the table)" in capsys.readouterr().out
+    with open(out / "results.csv", newline="") as stream:
+        rows = list(csv.DictReader(stream))
+    assert [row["name"] for row in rows] == ["a", "b", "c"]
+    for row in rows:
+        transform = np.array([float(value) for value in row["transform"].split()]).reshape(4, 4)
+        assert float(row["err_r_deg"]) == pytest.approx(err_r(transform, truths[row["name"]], surface(10, 0)), abs=1e-4)
+        assert row["path"] == "method" and row["confident"] in ("true", "false")
+
+
+def test_pairs_refuses_one_pair_arguments(tmp_path):
+    from linereg.train.register import _register_pairs
+
+    with pytest.raises(RegisterError, match="source= is for one pair"):
+        _register_pairs(_compose(pairs=tmp_path, source=tmp_path / "a.ply"), tmp_path / "run")
+    with pytest.raises(RegisterError, match=f"pairs={tmp_path}"):
+        _register_pairs(_compose(pairs=tmp_path), tmp_path / "run")

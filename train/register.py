@@ -37,7 +37,7 @@ import numpy as np
 from omegaconf import DictConfig, ListConfig, OmegaConf
 
 from linereg.train import CONFIG_DIR
-from linereg.train.cli import reported, require, run_app
+from linereg.train.cli import fail, reported, require, run_app
 
 COMMAND = "linereg-register"
 
@@ -304,11 +304,36 @@ def _write_outputs(cfg: DictConfig, out_dir: Path, src, tgt, transform: np.ndarr
         plot_registration(src.xyz, tgt.xyz, transform, out_dir / "registration.png", title=Path(cfg.source).name)
 
 
+def _register_pairs(cfg: DictConfig, out_dir: Path) -> None:
+    """``pairs=<folder>``: :func:`~linereg.train.register_pairs.register_folder`, and a summary line."""
+    from linereg.train.register_pairs import register_folder
+
+    for key in ("source", "target", "gt", "init"):
+        if cfg[key] is not None:
+            raise RegisterError(f"{key}= is for one pair; pairs=<folder> reads each pair's files (and <name>_gt.txt)")
+    if cfg.scale:
+        raise RegisterError("scale=true is for one pair (source=, target=), not pairs=<folder>")
+    try:
+        summary = register_folder(cfg, out_dir, method_config(cfg))
+    except (FileNotFoundError, ValueError, TypeError) as error:
+        raise RegisterError(f"pairs={cfg.pairs}: {error}") from error
+    print(
+        f"{summary['registered']} pairs registered ({summary['skipped']} already in the table), "
+        f"{summary['confident']} confident: {summary['table']}"
+    )
+
+
 @hydra.main(version_base="1.3", config_path=f"{CONFIG_DIR}/register", config_name="register")
 def _register_app(cfg: DictConfig) -> None:
     out_dir = Path(hydra.core.hydra_config.HydraConfig.get().runtime.output_dir)
     with reported(COMMAND):
-        require(cfg, COMMAND, {"source": "a point-cloud file", "target": "a point-cloud file"})
+        require(cfg, COMMAND, {})
+        if cfg.pairs is not None:
+            _register_pairs(cfg, out_dir)
+            return
+        missing = [f"{key}=... (a point-cloud file)" for key in ("source", "target") if cfg[key] is None]
+        if missing:
+            fail(COMMAND, f"missing {', '.join(missing)}, or pairs=<folder>; see {COMMAND} --help")
         result, report = register_files(cfg, out_dir)
     np.set_printoptions(precision=6, suppress=True)
     print(f"source -> target transform ({result.seconds:.2f} s):")

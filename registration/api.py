@@ -31,7 +31,7 @@ from linereg.registration.evaluation import assess_registration
 from linereg.registration.learned import LearnedRegistration
 from linereg.registration.methods import METHODS, MethodResult
 from linereg.registration.similarity import scale_guesses, scale_of, similarity_polish, with_scale
-from linereg.registration.trust import surface_points
+from linereg.registration.trust import free_scale, surface_points
 from linereg.registry import UnknownNameError
 
 DEFAULT_METHOD = "robust"
@@ -273,6 +273,9 @@ def _solve_with_scale(solver, src, seen, src_normals, seen_normals, tgt, fitness
         transform = similarity_polish(src, seen, with_scale(np.asarray(result.transform, dtype=np.float64), guess))
         factor = scale_of(transform)
         found = quality(factor * src, tgt, with_scale(transform, 1.0 / factor), fitness_threshold, on_surface)
+        loose = free_scale(src, seen, transform) if found["confident"] else None
+        if loose is not None:
+            found = {**found, "confident": False, "warnings": [*found["warnings"], loose]}
         rank = (found["confident"], found["fitness"])
         if best is None or rank > best[0]:
             info = {**result.info, "scale_guess": guess}

@@ -29,6 +29,8 @@ POLISH_POINTS = 2048
 """FPS points of the source the polish moves."""
 POLISH_SCALES = np.geomspace(4.0, 1.0, 20).tolist() + [1.0] * 20
 """Welsch scales of the polish, in point spacings of the target."""
+PLANE_STEPS = 10
+"""Point-to-plane similarity steps that end the polish."""
 
 
 def scale_guesses(src: np.ndarray, tgt: np.ndarray) -> list[float]:
@@ -74,7 +76,9 @@ def weighted_similarity(src: np.ndarray, tgt: np.ndarray, weights: np.ndarray) -
 
 def similarity_polish(src: np.ndarray, tgt: np.ndarray, transform: np.ndarray) -> np.ndarray:
     """Welsch IRLS of the similarity ``transform (4, 4)`` mapping ``src (N, 3)`` onto ``tgt (M, 3)``:
-    one weighted similarity solve per scale of :data:`POLISH_SCALES` (nearest target points)."""
+    one weighted similarity solve per scale of :data:`POLISH_SCALES` (nearest target points), then
+    :data:`PLANE_STEPS` point-to-plane steps (:func:`plane_similarity_step`: points that slide
+    along the surface no longer pull the scale)."""
     source = fps(np.asarray(src, dtype=np.float64), POLISH_POINTS)
     index = NearestNeighbors(tgt)
     spacing = spacing_of(tgt)
@@ -85,4 +89,39 @@ def similarity_polish(src: np.ndarray, tgt: np.ndarray, transform: np.ndarray) -
         if step is None or scale_of(step) <= 0:
             break
         transform = step
+    for _ in range(PLANE_STEPS):
+        transform = plane_similarity_step(source, index, transform, spacing)
     return transform
+
+
+def plane_similarity_step(
+    source: np.ndarray, index: NearestNeighbors, transform: np.ndarray, spacing: float
+) -> np.ndarray:
+    """One Gauss-Newton step of the Welsch-weighted point-to-plane distances (scale ``spacing``)
+    over a similarity: ``x' = c + (1 + sigma) (I + [w]x) (x - c) + tau`` about the moved points'
+    centroid ``c``, each moved point ``x`` of ``source (N, 3)`` against the plane of its nearest
+    target points (:func:`~linereg.registration.trust.target_normals`)."""
+    from linereg.registration.trust import target_normals
+
+    moved = source @ transform[:3, :3].T + transform[:3, 3]
+    distances, idx = index.query(moved)
+    normals = target_normals(moved, index)
+    center = moved.mean(axis=0)
+    arm = moved - center
+    residual = np.sum(normals * (moved - index.points[idx]), axis=1)
+    jacobian = np.column_stack([np.cross(arm, normals), np.sum(normals * arm, axis=1), normals])
+    weights = welsch_weights(distances, spacing)
+    normal_matrix = jacobian.T @ (weights[:, None] * jacobian)
+    if np.linalg.cond(normal_matrix) > 1e12:
+        return transform
+    omega, sigma, tau = np.split(np.linalg.solve(normal_matrix, -jacobian.T @ (weights * residual)), [3, 4])
+    angle = float(np.linalg.norm(omega))
+    rotation = np.eye(3)
+    if angle > 0:
+        axis = omega / angle
+        cross = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
+        rotation = np.eye(3) + np.sin(angle) * cross + (1 - np.cos(angle)) * cross @ cross
+    step = np.eye(4)
+    step[:3, :3] = (1.0 + float(sigma[0])) * rotation
+    step[:3, 3] = center - step[:3, :3] @ center + tau
+    return step @ transform

@@ -31,6 +31,8 @@ CHANCE_QUANTILE = 0.9
 """The placements' fitness quantile that stands for chance."""
 WEAK_DIRECTIONS = 3
 """Directions of least information that :func:`free_motions` moves the answer along."""
+SCALE_MOVE = 0.03
+"""The change of scale that :func:`free_scale` tries."""
 FLAT = 1e-3
 """A variance ratio under which the overlap is a plane (its thickness under 3 % of its width)."""
 FREE_MOVE = 0.2
@@ -204,6 +206,25 @@ def tight_fitness(source: np.ndarray, target: NearestNeighbors, transforms: np.n
     moved = np.einsum("kij,nj->kni", transforms[:, :3, :3], source) + transforms[:, None, :3, 3]
     distances, _ = target.query(moved, distance_upper_bound=radius)
     return (distances <= radius).mean(axis=1)
+
+
+def free_scale(source: np.ndarray, target: np.ndarray, transform: np.ndarray) -> str | None:
+    """A warning when the scale of a similarity ``transform (4, 4)`` mapping ``source (N, 3)`` onto
+    ``target (M, 3)`` is not determined: scaling the answer by ``1 -/+`` :data:`SCALE_MOVE` about
+    its centroid keeps :data:`FREE_FITNESS` of its :func:`soft_fitness` (else ``None``)."""
+    from linereg.fps import farthest_point_subset as fps
+
+    moved = fps(source, 2048) @ transform[:3, :3].T + transform[:3, 3]
+    index, spacing = NearestNeighbors(target), spacing_of(target)
+    center = moved.mean(axis=0)
+    own = float(soft_fitness(moved, index, np.eye(4)[None], spacing)[0])
+    scalings = np.stack([np.eye(4)] * 2)
+    for scaling, factor in zip(scalings, (1.0 - SCALE_MOVE, 1.0 + SCALE_MOVE), strict=True):
+        scaling[:3, :3] *= factor
+        scaling[:3, 3] = center - factor * center
+    if soft_fitness(moved, index, scalings, spacing).max() < FREE_FITNESS * own:
+        return None
+    return f"the scale is not determined: {100 * SCALE_MOVE:g} % larger or smaller fits as well (too little structure)"
 
 
 def soft_fitness(source: np.ndarray, target: NearestNeighbors, transforms: np.ndarray, sigma: float) -> np.ndarray:

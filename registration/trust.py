@@ -37,6 +37,10 @@ FLAT = 1e-3
 """A variance ratio under which the overlap is a plane (its thickness under 3 % of its width)."""
 FREE_MOVE = 0.2
 """The size of that move: a rotation of 0.2 rad (11 degrees) or a shift of 0.2 RMS radii of the overlap."""
+RIVAL_STEPS = 8
+"""Welsch IRLS steps that polish each turned answer (3 to 1 point spacings)."""
+RIVAL_GAP_DEG = 10.0
+"""A polished turned answer closer than this to the answer is the answer again."""
 RIVAL_FITNESS = 0.9
 """A turned answer that keeps this share of the answer's :func:`soft_fitness` fits as well."""
 FREE_FITNESS = 0.93
@@ -239,16 +243,25 @@ def soft_fitness(source: np.ndarray, target: NearestNeighbors, transforms: np.nd
 def symmetric_rival(
     source: np.ndarray, target: NearestNeighbors, transform: np.ndarray, inliers: np.ndarray, sigma: float
 ) -> float | None:
-    """The angle (degrees) of a turned answer (:func:`turned`) whose :func:`soft_fitness` at ``sigma``
-    is at least :data:`RIVAL_FITNESS` of the answer's, or ``None``."""
+    """The angle (degrees) from the answer of a turned one (:func:`turned`), polished by
+    :data:`RIVAL_STEPS` Welsch IRLS steps down to ``sigma`` and still more than
+    :data:`RIVAL_GAP_DEG` away, whose :func:`soft_fitness` at ``sigma`` is at least
+    :data:`RIVAL_FITNESS` of the answer's; ``None`` when there is none."""
+    from linereg.registration.poses import rotation_gap_deg
+    from linereg.registration.welsch import welsch_irls
+
     if len(inliers) < 4:
         return None
     rivals = turned(transform, inliers)
+    scales = np.geomspace(3.0 * sigma, sigma, RIVAL_STEPS)
+    rotations, translations = welsch_irls((rivals[:, :3, :3], rivals[:, :3, 3]), source, target, scales)
+    rivals[:, :3, :3], rivals[:, :3, 3] = rotations, translations
+    gaps = rotation_gap_deg(rotations, transform[:3, :3])
     own = float(soft_fitness(source, target, transform[None], sigma)[0])
-    fits = soft_fitness(source, target, rivals, sigma)
+    fits = np.where(gaps > RIVAL_GAP_DEG, soft_fitness(source, target, rivals, sigma), 0.0)
     if own <= 0 or fits.max() < RIVAL_FITNESS * own:
         return None
-    return float([90, 180, 270][int(fits.argmax()) % 3])
+    return float(gaps[int(fits.argmax())])
 
 
 def scale_mismatch(source_spacing: float, target_spacing: float) -> str | None:

@@ -265,7 +265,7 @@ def test_evaluate_registration_matches_open3d(pair):
 
 def test_register_many_answers_in_order_as_register_does(pair, checkpoint):
     """The network's forward in batches gives each pair the pose a single call gives it; results keep the order."""
-    src, tgt, T = pair
+    src, tgt, _ = pair
     other = pose([0.0, 10.0, 0.0], [0.0, 0.1, 0.0])
     pairs = [(src, tgt), (src, src @ other[:3, :3].T + other[:3, 3]), (src, tgt)]
     many = list(linereg.register_many(pairs, method=checkpoint, batch_size=2, progress=False))

@@ -8,7 +8,8 @@ Each real scan pair (the Stanford Bunny range scans ``bun045`` -> ``bun000`` wit
 registered by ``linereg.register`` as it is and with its target changed: in other units (x1000,
 x0.001, x2, x0.5: rigidly, then with ``scale=True``), mirrored, replaced by another object, every
 point duplicated, the source cut to the part that does not overlap the target, heavy noise (3 point
-spacings), and 50-95 % uniform clutter in the target's bounding box. The shape traps register two
+spacings), 50-95 % uniform clutter in the target's bounding box, and the target placed in a room
+(the 3DMatch demo pair's reference fragment, scaled to 20 times its diameter). The shape traps register two
 samplings of a plane, a line, a sphere and a box (symmetric), whose poses are not unique.
 
 An answer is right within 5 degrees and 5 % of the target's diameter (with ``scale=True`` also
@@ -83,8 +84,11 @@ def _diameter(points: np.ndarray) -> float:
     return float(np.linalg.norm(points.max(axis=0) - points.min(axis=0)))
 
 
-def scan_traps(pair: Pair, other: np.ndarray, rng: np.random.Generator) -> dict[str, tuple[Pair, dict]]:
-    """``{trap: (pair, register keyword arguments)}`` of one real scan pair; ``other`` is another object's scan."""
+def scan_traps(
+    pair: Pair, other: np.ndarray, room: np.ndarray | None, rng: np.random.Generator
+) -> dict[str, tuple[Pair, dict]]:
+    """``{trap: (pair, register keyword arguments)}`` of one real scan pair; ``other`` is another
+    object's scan, ``room`` a room scan to place the target in (``None``: no such trap)."""
     src, tgt, truth = pair
     spacing = spacing_of(tgt)
     low, high = tgt.min(axis=0), tgt.max(axis=0)
@@ -107,6 +111,9 @@ def scan_traps(pair: Pair, other: np.ndarray, rng: np.random.Generator) -> dict[
     for share in CLUTTER:
         clutter = rng.uniform(low, high, (int(len(tgt) * share / (1.0 - share)), 3))
         traps[f"clutter {100 * share:.0f} %"] = (Pair(src, np.concatenate([tgt, clutter]), truth), {})
+    if room is not None:
+        scene = (room - room.mean(axis=0)) * (20.0 * _diameter(tgt) / _diameter(room)) + tgt.mean(axis=0)
+        traps["in a room scan"] = (Pair(src, np.concatenate([tgt, scene]), truth), {})
     return traps
 
 
@@ -195,9 +202,11 @@ def main(argv: list[str] | None = None) -> int:
         except (FileNotFoundError, OSError) as error:
             print(f"bench_trust: {name} skipped: {error}", file=sys.stderr)
     traps = {}
+    room = pairs["3dmatch"].target if "3dmatch" in pairs else None
     for name, pair in pairs.items():
         other = next((p.target for n, p in pairs.items() if n != name), shape_traps(rng)["box (symmetric)"][0].target)
-        traps.update({(name, trap): value for trap, value in scan_traps(pair, other, rng).items()})
+        scene = room if name != "3dmatch" else None
+        traps.update({(name, trap): value for trap, value in scan_traps(pair, other, scene, rng).items()})
     if args.shapes:
         traps.update({("shape", trap): value for trap, value in shape_traps(rng).items()})
     for (scan, trap), (pair, options) in traps.items():

@@ -6,7 +6,8 @@ run through :func:`linereg.register_many` (a network's forward in batches; ``ref
 its poses with the solver) in name order, and each result is appended to ``results.csv`` in the run
 folder as it comes: the name, the 16 numbers of the transform (row-major), ``fitness``,
 ``inlier_rmse``, ``confident``, ``seconds``, the ``path`` taken (a network's: ``network``,
-``polished network`` or ``solver``; ``method`` for any other method), and with ground truth
+``polished network`` or ``solver``; ``method`` for any other method), the ``warnings`` (joined by
+`` | ``), and with ground truth
 ``err_r_deg`` and ``err_t``. Run again in the same folder (``hydra.run.dir=<it>``), the command
 skips the pairs ``results.csv`` holds.
 """
@@ -20,7 +21,7 @@ from typing import Any
 import numpy as np
 from omegaconf import DictConfig, OmegaConf
 
-COLUMNS = ("name", "transform", "fitness", "inlier_rmse", "confident", "seconds", "path")
+COLUMNS = ("name", "transform", "fitness", "inlier_rmse", "confident", "seconds", "path", "warnings")
 LABELLED_COLUMNS = ("err_r_deg", "err_t")
 
 
@@ -93,6 +94,7 @@ def _row(name: str, result) -> dict[str, Any]:
         "confident": str(bool(result.confident)).lower(),
         "seconds": f"{result.seconds:.3f}",
         "path": result.info.get("path", "method"),
+        "warnings": " | ".join(result.info.get("warnings", ())),
     }
 
 

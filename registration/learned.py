@@ -6,7 +6,7 @@
     learned(src, tgt)                          # MethodResult: the finished pose, info["path"]
     learned.predict_many([(src, tgt), ...])    # the network's poses, forward in batches
 
-The network starts and the solver finishes (:meth:`LearnedRegistration.finish`): the network's pose
+The network starts and the solver finishes (:class:`Finish`): the network's pose
 is polished locally on the clouds in their own units and judged by register's check; only when the
 check does not trust it does the whole solver run, and its answer replaces the polished network
 pose only when the check prefers it. A wrong network then costs time, never accuracy, and a flip of
@@ -62,7 +62,7 @@ class LearnedRegistration:
             ``best.pt``) or a pretrained name (:mod:`linereg.pretrained`).
         device: torch device of the model (loaded once per process and device).
         num_points: points per cloud fed to the model (``None``: the run's ``trainer.num_points``).
-        refine: finish the network's pose with the solver (:meth:`finish`); a mapping gives
+        refine: finish the network's pose with the solver (:class:`Finish`); a mapping gives
             :class:`~linereg.registration.robust.RobustOptions` fields of both the polish and the
             solver (numpy, on the CPU whatever ``device``).
     """
@@ -85,11 +85,9 @@ class LearnedRegistration:
         self.iterate = IterateRule.from_config(state["config"].get("iterate"))
         self.num_points = num_points or state["config"].get("trainer", {}).get("num_points") or 1024
         self.half_extent = training_half_extent(state["config"].get("dataset") or {})
-        self.polisher = self.solver = None
+        self.finish = None
         if refine:
-            options = dict(refine) if isinstance(refine, Mapping) else {}
-            self.polisher = METHODS.build({"name": DEFAULT_SOLVER, "options": {**POLISH_ONLY, **options}})
-            self.solver = METHODS.build({"name": DEFAULT_SOLVER, "options": options})
+            self.finish = Finish(refine if isinstance(refine, Mapping) else None)
 
     def _prepare(self, src: np.ndarray, tgt: np.ndarray) -> _Prepared:
         """``src (N, 3)`` and ``tgt (M, 3)`` as the network reads them."""
@@ -156,14 +154,28 @@ class LearnedRegistration:
             "iterate": self.iterate.as_config(),
             "network_transform": network.tolist(),
         }
-        if self.polisher is None:
+        if self.finish is None:
             return MethodResult(transform=network, seconds=seconds, info={**info, "path": "network"})
         finished = self.finish(np.asarray(src, np.float64), np.asarray(tgt, np.float64), network)
         return MethodResult(
             transform=finished.transform, seconds=seconds + finished.seconds, info={**info, **finished.info}
         )
 
-    def finish(self, src: np.ndarray, tgt: np.ndarray, start: np.ndarray) -> MethodResult:
+
+class Finish:
+    """The solver's finish of a network's pose (module docstring): ``finish(src, tgt, start)``.
+
+    Args:
+        options: :class:`~linereg.registration.robust.RobustOptions` fields of both the polish
+            (on top of :data:`POLISH_ONLY`) and the solver.
+    """
+
+    def __init__(self, options: Mapping[str, Any] | None = None) -> None:
+        options = dict(options or {})
+        self.polisher = METHODS.build({"name": DEFAULT_SOLVER, "options": {**POLISH_ONLY, **options}})
+        self.solver = METHODS.build({"name": DEFAULT_SOLVER, "options": options})
+
+    def __call__(self, src: np.ndarray, tgt: np.ndarray, start: np.ndarray) -> MethodResult:
         """The network's pose ``start (4, 4)`` finished on ``src (N, 3)`` and ``tgt (M, 3)`` in their own
         units: a local polish from it (:data:`POLISH_ONLY`); when register's check
         (:func:`~linereg.registration.evaluation.assess_registration`) does not trust it, the whole

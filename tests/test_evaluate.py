@@ -245,3 +245,31 @@ def test_evaluate_judges_a_pair_as_register_does_in_its_input_units(tmp_path, of
     assert judged.confident == registered["confident"] == (offset == 0.0)
     assert judged.inlier_rmse == pytest.approx(registered["inlier_rmse"], rel=1e-4, abs=1e-6)
     assert judged.fitness == pytest.approx(registered["fitness"])
+
+
+def test_refine_finishes_each_estimate_in_input_units(tmp_path):
+    """A network 4 degrees off: the solver's finish on the pair in its own units brings every pair back."""
+    from linereg.registration.learned import Finish
+
+    _pairs_folder(tmp_path / "pairs", (300, 300), labelled=True)
+    loader = distributed.make_loader(
+        FolderPairs(tmp_path / "pairs", half_extent=1.0), batch_size=2, num_points=None, shuffle=False
+    )
+
+    class _Off(nn.Module):
+        def forward(self, batch: PairBatch) -> RegistrationOutput:
+            turn = torch.eye(4, dtype=batch.gt_transform.dtype).repeat(batch.batch_size, 1, 1)
+            angle = torch.tensor(np.radians(4.0), dtype=turn.dtype)
+            turn[:, 0, 0], turn[:, 0, 1], turn[:, 1, 0], turn[:, 1, 1] = (
+                angle.cos(),
+                -angle.sin(),
+                angle.sin(),
+                angle.cos(),
+            )
+            return RegistrationOutput(transforms=[turn @ batch.gt_transform])
+
+    bare = evaluate_model(_Off(), loader, device=torch.device("cpu"))
+    finished = evaluate_model(_Off(), loader, device=torch.device("cpu"), finish=Finish(), assess=True)
+    assert bare.errors["err_r_deg"].min() > 3.9
+    assert finished.errors["err_r_deg"].max() < 0.05 and finished.paths == ["polished network"] * 2
+    assert all(a.confident for a in finished.assessments)

@@ -39,7 +39,7 @@ from typing import Any
 import hydra
 import numpy as np
 import torch
-from omegaconf import DictConfig, open_dict
+from omegaconf import DictConfig, OmegaConf, open_dict
 from torch import nn
 from torch.utils.data import Dataset
 from tqdm.auto import tqdm
@@ -93,6 +93,7 @@ class Evaluation:
         assessments: per pair, :func:`linereg.register`'s check of the estimate
             (:func:`~linereg.registration.evaluation.assess_registration`), or ``None`` when not
             asked for.
+        paths: per pair, the path of the solver's finish (``polished network``, ``solver``), when finished.
     """
 
     num_pairs: int = 0
@@ -103,6 +104,7 @@ class Evaluation:
     meta: list[dict[str, Any]] = field(default_factory=list)
     kept: list[KeptPair] = field(default_factory=list)
     assessments: list[Assessment] | None = None
+    paths: list[str] = field(default_factory=list)
 
     @property
     def labelled(self) -> bool:
@@ -157,6 +159,7 @@ def evaluate_model(
     description: str = "evaluate",
     iterate: IterateRule = LAST_ITERATE,
     assess: bool = False,
+    finish: Any = None,
 ) -> Evaluation:
     """Run ``model`` (in evaluation mode) over a loader and collect errors and losses.
 
@@ -173,6 +176,8 @@ def evaluate_model(
         description: bar label.
         iterate: the rule choosing, per pair, the iterate whose errors are measured.
         assess: also run :func:`linereg.register`'s check on every pair (:func:`assess_pairs`).
+        finish: a :class:`~linereg.registration.learned.Finish`: each estimate is finished by the
+            solver on the pair in its input units (:func:`finished_pairs`) before it is measured.
 
     Returns:
         An :class:`Evaluation`; errors only when every batch has ``gt_transform``, assessments
@@ -199,6 +204,8 @@ def evaluate_model(
             T_pred = iterate.select(
                 output.transforms, batch.src_xyz, batch.tgt_xyz, batch.src_lengths, batch.tgt_lengths
             )[0].detach()
+            if finish is not None:
+                T_pred = finished_pairs(T_pred, batch, finish, result.paths)
             if batch.gt_transform is None:
                 labelled = False
             else:
@@ -255,6 +262,29 @@ def assess_pairs(T_pred: torch.Tensor, batch: PairBatch) -> list[Assessment]:
         )
         for b in range(batch.batch_size)
     ]
+
+
+def finished_pairs(T_pred: torch.Tensor, batch: PairBatch, finish: Any, paths: list[str]) -> torch.Tensor:
+    """The estimates ``T_pred (B, 4, 4)`` finished by ``finish`` on each pair in its input units
+    (:func:`input_units`) and mapped back into the cube of the batch; each pair's path is appended
+    to ``paths``."""
+    from linereg.datasets.protocol import scale_transform
+
+    transforms = T_pred.detach().cpu().double().numpy()
+    meta = batch.meta or [{} for _ in range(batch.batch_size)]
+    finished = []
+    for b in range(batch.batch_size):
+        src, tgt, start = input_units(
+            _valid(batch.src_xyz, batch.src_lengths, b),
+            _valid(batch.tgt_xyz, batch.tgt_lengths, b),
+            transforms[b],
+            meta[b],
+        )
+        result = finish(src, tgt, start)
+        paths.append(result.info["path"])
+        center = np.asarray(meta[b].get("center", np.zeros(3)), dtype=np.float64)
+        finished.append(scale_transform(result.transform, center, float(meta[b].get("scale", 1.0))))
+    return torch.as_tensor(np.stack(finished), dtype=T_pred.dtype, device=T_pred.device)
 
 
 def input_units(
@@ -459,6 +489,7 @@ def evaluate(cfg: DictConfig) -> dict[str, Any]:
         progress=cfg.progress,
         iterate=iterate,
         assess=True,
+        finish=_finish(cfg.get("refine")),
     )
     name = f"{stored['model']['name']} ({Path(state['path']).name})"
     output_dir = Path(cfg.output_dir)
@@ -469,10 +500,21 @@ def evaluate(cfg: DictConfig) -> dict[str, Any]:
         "epoch": state["progress"]["epoch"],
         "iterate": iterate.as_config(),
     }
+    if evaluation.paths:
+        info["refine"] = {path: evaluation.paths.count(path) for path in sorted(set(evaluation.paths))}
     content = write_evaluation(evaluation, output_dir, name=name, alphas=list(cfg.alphas), info=info)
     print(report(name, evaluation, list(cfg.alphas)))
     log.info("evaluation written to %s", output_dir)
     return content
+
+
+def _finish(refine: Any):
+    """The :class:`~linereg.registration.learned.Finish` of ``refine=`` (``true`` or solver options), or ``None``."""
+    if not refine:
+        return None
+    from linereg.registration.learned import Finish
+
+    return Finish(OmegaConf.to_container(refine) if OmegaConf.is_config(refine) else None)
 
 
 def iterate_rule(stored: Mapping[str, Any], overrides: Mapping[str, Any] | None) -> IterateRule:

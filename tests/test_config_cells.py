@@ -250,13 +250,19 @@ def renamed(values: Mapping[str, Any]) -> dict[str, Any]:
 
 
 # The machine a run computes on, not what it computes: the command line's alone (configs/train.yaml).
-MACHINE = ("trainer.device", "trainer.threads", "trainer.progress", "trainer.num_workers")
+MACHINE = (
+    "trainer.device",
+    "trainer.threads",
+    "trainer.progress",
+    "trainer.num_workers",
+    "trainer.checkpoint_every_steps",
+)
 
 
 def effective(values: Mapping[str, Any]) -> dict[str, Any]:
     """What a run does with ``values``: stages with 0 epochs are skipped (linereg.train.curriculum),
     an untrained control (``trainer.untrained``) runs no stage at all, and the machine keys
-    (:data:`MACHINE`) are where it runs, not what."""
+    (:data:`MACHINE`) are where it runs and how often it saves, not what it computes."""
     skipped = {
         key.rsplit(".", 1)[0]
         for key, value in values.items()
@@ -379,7 +385,7 @@ DATA_GROUPS = tuple(group for group in TRAINING_GROUPS if group not in ("debug",
 def test_no_data_file_sets_the_machine():
     """No protocol, dataset, experiment, recipe or component file sets a :data:`MACHINE` key, and
     every protocol x experiment resolves to the command's defaults: CUDA when present, torch's own
-    thread count, progress bars."""
+    thread count, progress bars, checkpoints at the end of each epoch only."""
     for group in DATA_GROUPS:
         for path in (CONFIGS / group).glob("*.yaml"):
             values = flatten({k: v for k, v in (yaml.safe_load(path.read_text()) or {}).items() if k != "defaults"})
@@ -393,6 +399,7 @@ def test_no_data_file_sets_the_machine():
             "trainer.threads": None,
             "trainer.progress": True,
             "trainer.num_workers": 0,
+            "trainer.checkpoint_every_steps": None,
         }, name
 
 

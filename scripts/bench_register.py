@@ -5,6 +5,7 @@
     python scripts/bench_register.py --compare '{"name": "robust", "options": {"rounds": 1}}'
     python scripts/bench_register.py --scans --repeats 2  # real scans, the command vs fpfh_ransac, per path
     python scripts/bench_register.py --scans --baseline ../other-checkout   # + that checkout's command, same run
+    python scripts/bench_register.py --throughput rpm_ours_airplane --pairs 30   # solver vs network vs finished network
 
 Pairs: :mod:`linereg.datasets.partial_vs_whole` on the ModelNet40 airplanes of the shared data (source a
 hidden-point-removal view of 1024 points, target 2048 points of the whole shape). In one run,
@@ -35,6 +36,11 @@ default took: ``local`` (the first round's answer kept: not doubtful, or trusted
 check) or ``global`` (the dense check doubted it; how many global candidates ran). A last table
 gives each path's share of the pairs, its median and largest command time and its median ratio
 to the reference.
+
+With ``--throughput <network>`` (a pretrained name or run) it times :func:`linereg.register_many` in one
+process on ``--pairs`` test pairs of that network's protocol (seed 0): the solver, the bare network
+and the finished network (``refine=True``), as pairs per second with their mean Err_R, confident share
+and, for the finished network, how often the solver ran.
 
 With ``--baseline <checkout>`` the same command of another checkout of linereg (another version)
 is timed beside it, on the same pairs, in the same run: ``command / baseline``.
@@ -292,6 +298,56 @@ def measure_scans(pairs: list[ScanPair], folder: Path, repeats: int, baseline: P
     return rows
 
 
+def throughput(network: str, count: int) -> dict[str, dict[str, float]]:
+    """``register_many`` on ``count`` test pairs of ``network``'s protocol, in one process: per way
+    (``solver``, ``network``, ``finished network``), pairs per second, mean and max Err_R, the
+    confident share, its precision (confident answers within 5 degrees) and how often the solver ran."""
+    from linereg import pretrained, register_many
+    from linereg.datasets.benchmark_pairs import run_pairs
+
+    run = str(pretrained.path(network)) if pretrained.is_name(network) else network
+    pairs = run_pairs(run=run, split="test", pairs=count, seed=0)
+    clouds = [(pair.src_xyz.astype(np.float64), pair.tgt_xyz.astype(np.float64)) for pair in pairs]
+    ways = {"solver": {}, "network": {"method": network}, "finished network": {"method": network, "refine": True}}
+    rows = {}
+    for way, options in ways.items():
+        list(register_many(clouds[:1], progress=False, **options))  # warm-up: imports, the model loaded
+        start = time.perf_counter()
+        results = list(register_many(clouds, progress=False, **options))
+        seconds = time.perf_counter() - start
+        errors = np.array(
+            [_rotation_error(r.transformation, p.gt_transform) for r, p in zip(results, pairs, strict=True)]
+        )
+        confident = np.array([r.confident for r in results])
+        rows[way] = {
+            "pairs_per_s": len(pairs) / seconds,
+            "err_r_deg_mean": float(errors.mean()),
+            "err_r_deg_max": float(errors.max()),
+            "confident_share": float(confident.mean()),
+            "confident_precision": float((confident & (errors <= 5.0)).sum() / max(confident.sum(), 1)),
+            "solver_ran_share": float(np.mean([r.info.get("solver_ran", way == "solver") for r in results])),
+        }
+    return rows
+
+
+def _rotation_error(transform: np.ndarray, truth: np.ndarray) -> float:
+    return float(rotation_gap_deg(transform[None, :3, :3], _rigid(truth)[:3, :3])[0])
+
+
+def print_throughput(network: str, rows: dict[str, dict[str, float]]) -> None:
+    """The ``--throughput`` table, ratios against the solver."""
+    solver = rows["solver"]["pairs_per_s"]
+    print(f"{network}: its protocol's test pairs, one process, {os.cpu_count()} CPUs\n")
+    print("| way | pairs / s | vs the solver | Err_R mean (max), deg | confident | precision | solver ran |")
+    print("|---|---:|---:|---|---:|---:|---:|")
+    for way, row in rows.items():
+        print(
+            f"| {way} | {row['pairs_per_s']:.2f} | {row['pairs_per_s'] / solver:.2f}x "
+            f"| {row['err_r_deg_mean']:.2f} ({row['err_r_deg_max']:.1f}) | {row['confident_share']:.2f} "
+            f"| {row['confident_precision']:.2f} | {row['solver_ran_share']:.2f} |"
+        )
+
+
 def path_summary(rows: dict[str, dict]) -> dict[str, dict]:
     """Per path (``local``, ``global``): pairs, their share, the command's median and largest wall
     time and the median ratio to the reference command."""
@@ -355,7 +411,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--fragments", type=int, default=16, help="room-fragment pairs with --scans (4 bins)")
     parser.add_argument("--fragment-points", type=int, default=100_000, help="points of each fragment with --scans")
     parser.add_argument("--baseline", type=Path, help="another checkout of linereg whose command is timed beside")
+    parser.add_argument("--throughput", metavar="NETWORK", help="pairs per second of solver, network, finished network")
     args = parser.parse_args(argv)
+    if args.throughput is not None:
+        print_throughput(args.throughput, throughput(args.throughput, args.pairs))
+        return 0
     if args.baseline is not None and not (args.baseline / "train" / "register.py").is_file():
         parser.error(f"--baseline {args.baseline}: not a checkout of linereg (no train/register.py)")
     if args.compare is not None:

@@ -31,7 +31,7 @@ def _optimizer() -> torch.optim.Optimizer:
 
 @pytest.fixture(scope="module")
 def data(tmp_path_factory) -> dict[str, str]:
-    """A pairs folder, a mesh folder and a cache folder of two procedural pairs."""
+    """A pairs folder, a scan folder, a mesh folder and a cache folder of two procedural pairs."""
     root = tmp_path_factory.mktemp("registries")
     rng = np.random.default_rng(0)
     pairs = root / "pairs"
@@ -42,12 +42,16 @@ def data(tmp_path_factory) -> dict[str, str]:
     gt = np.eye(4)
     gt[:3, 3] = 0.1
     write_transform(pairs / "a_gt.txt", gt)
+    scans = root / "scans"
+    scans.mkdir()
+    for index in range(4):
+        write_point_cloud(scans / f"scan_{index}.ply", cloud + 0.05 * index)
     meshes = root / "meshes"
     meshes.mkdir()
     trimesh.creation.box(extents=(1.0, 0.6, 0.3)).export(meshes / "box.ply")
     dataset = linereg.datasets.build_dataset(TINY_PROCEDURAL)
     cache = linereg.datasets.materialize(dataset, root / "cache", workers=1, progress=False)
-    return {"pairs": str(pairs), "meshes": str(meshes), "cache": str(cache.path)}
+    return {"pairs": str(pairs), "scans": str(scans), "meshes": str(meshes), "cache": str(cache.path)}
 
 
 # registry -> (positional arguments of build, {name: options that build it}); a name needing data
@@ -72,6 +76,7 @@ CASES: dict[str, tuple[Registry, tuple, dict]] = {
             "concat": {"datasets": [TINY_PROCEDURAL, TINY_PROCEDURAL]},
             "cached": lambda data: {"path": data["cache"]},
             "pairs_folder": lambda data: {"root": data["pairs"]},
+            "scan_folder": lambda data: {"root": data["scans"], "num_points": 64},
             "mesh_folder": lambda data: {"root": data["meshes"]},
         },
     ),

@@ -20,6 +20,7 @@ import numpy as np
 from linereg.fps import farthest_point_subset as fps
 from linereg.knn import NearestNeighbors
 from linereg.procrustes import weighted_procrustes_numpy
+from linereg.registration.poses import rodrigues
 from linereg.registration.trust import spacing_of
 from linereg.registration.welsch import welsch_weights
 
@@ -115,12 +116,7 @@ def plane_similarity_step(
     if np.linalg.cond(normal_matrix) > 1e12:
         return transform
     omega, sigma, tau = np.split(np.linalg.solve(normal_matrix, -jacobian.T @ (weights * residual)), [3, 4])
-    angle = float(np.linalg.norm(omega))
-    rotation = np.eye(3)
-    if angle > 0:
-        axis = omega / angle
-        cross = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
-        rotation = np.eye(3) + np.sin(angle) * cross + (1 - np.cos(angle)) * cross @ cross
+    rotation = rodrigues(omega[None])[0]
     step = np.eye(4)
     step[:3, :3] = (1.0 + float(sigma[0])) * rotation
     step[:3, 3] = center - step[:3, :3] @ center + tau

@@ -24,6 +24,8 @@ from typing import NamedTuple
 import numpy as np
 
 from linereg.knn import NearestNeighbors
+from linereg.registration.poses import rodrigues, rotation_gap_deg
+from linereg.registration.welsch import welsch_irls
 
 CHANCE_PLACEMENTS = 32
 """Random placements of the source that :func:`chance_fitness` measures."""
@@ -155,12 +157,7 @@ def free_motions(
 def _twist(vector: np.ndarray, center: np.ndarray, length: float) -> np.ndarray:
     """``(4, 4)``: the motion ``vector = [a, b]`` of :func:`free_motions`' coordinates, a rotation by the
     vector ``a`` (radians) about ``center`` then a shift by ``b L``."""
-    angle = float(np.linalg.norm(vector[:3]))
-    rotation = np.eye(3)
-    if angle > 0:
-        axis = vector[:3] / angle
-        cross = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
-        rotation = np.eye(3) + np.sin(angle) * cross + (1 - np.cos(angle)) * cross @ cross
+    rotation = rodrigues(vector[None, :3])[0]
     motion = np.eye(4)
     motion[:3, :3], motion[:3, 3] = rotation, center - rotation @ center + vector[3:] * length
     return motion
@@ -195,9 +192,8 @@ def turned(transform: np.ndarray, inliers: np.ndarray) -> np.ndarray:
     _, axes = np.linalg.eigh(np.cov((inliers - center).T))
     turns = []
     for axis in axes.T:
-        cross = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
         for angle in (0.5 * np.pi, np.pi, 1.5 * np.pi):
-            rotation = np.eye(3) + np.sin(angle) * cross + (1 - np.cos(angle)) * cross @ cross
+            rotation = rodrigues(angle * axis[None])[0]
             turn = np.eye(4)
             turn[:3, :3], turn[:3, 3] = rotation, center - rotation @ center
             turns.append(turn @ transform)
@@ -247,9 +243,6 @@ def symmetric_rival(
     :data:`RIVAL_STEPS` Welsch IRLS steps down to ``sigma`` and still more than
     :data:`RIVAL_GAP_DEG` away, whose :func:`soft_fitness` at ``sigma`` is at least
     :data:`RIVAL_FITNESS` of the answer's; ``None`` when there is none."""
-    from linereg.registration.poses import rotation_gap_deg
-    from linereg.registration.welsch import welsch_irls
-
     if len(inliers) < 4:
         return None
     rivals = turned(transform, inliers)

@@ -98,6 +98,7 @@ def turn_about_centre(points: np.ndarray, max_angle_deg: float, rng: np.random.G
     return (points - centre) @ rotation.T + centre
 
 
+@DATASETS.register("scan_folder")
 class ScanFolderPairs(PairDataset):
     """Pairs of a folder of scans (see the module docstring).
 
@@ -210,38 +211,3 @@ class ScanFolderPairs(PairDataset):
             "scan": vars(self.scan),
             "seed": self.seed,
         }
-
-
-@DATASETS.register("scan_folder")
-def build_scan_folder(
-    *,
-    root: str,
-    part: str = "all",
-    frame_gap: int = 1,
-    pairs_file: str | None = None,
-    val_share: float = 0.25,
-    test_share: float = 0.0,
-    poses: str | None = None,
-    copies: int = 1,
-    source_motion_deg: float = 0.0,
-    num_points: int | None = 2048,
-    dense_points: int | None = 20000,
-    half_extent: float | None = 1.0,
-    seed: int = 0,
-) -> ScanFolderPairs:
-    """Pairs of a folder of scans (see :class:`ScanFolderPairs`)."""
-    return ScanFolderPairs(
-        root,
-        part=part,
-        frame_gap=frame_gap,
-        pairs_file=pairs_file,
-        val_share=val_share,
-        test_share=test_share,
-        poses=poses,
-        copies=copies,
-        source_motion_deg=source_motion_deg,
-        num_points=num_points,
-        dense_points=dense_points,
-        half_extent=half_extent,
-        seed=seed,
-    )

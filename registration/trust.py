@@ -124,18 +124,16 @@ class FreeMotion(NamedTuple):
     share: float
 
 
-def free_motions(
-    moved: np.ndarray, inliers: np.ndarray, normals_from: NearestNeighbors, target: NearestNeighbors, sigma: float
-) -> list[FreeMotion]:
+def free_motions(moved: np.ndarray, inliers: np.ndarray, target: NearestNeighbors, sigma: float) -> list[FreeMotion]:
     """The motions of the answer that keep its fit: of the :data:`WEAK_DIRECTIONS` eigenvectors of
     least eigenvalue of the 6x6 point-to-plane information matrix ``sum J_i^T J_i`` of the ``inliers
     (n, 3)``, ``J_i = [((p_i - c) / L) x n_i, n_i]`` (``c`` their centroid, ``L`` their RMS radius,
-    ``n_i`` the target's normals from ``normals_from``), those along which a move of
+    ``n_i`` the target's normals there), those along which a move of
     :data:`FREE_MOVE` ``L`` (either way) keeps at least :data:`FREE_FITNESS`
     of the :func:`soft_fitness` of the moved source ``moved (N, 3)`` against ``target`` at ``sigma``."""
     if len(inliers) < NORMAL_NEIGHBOURS:
         return []
-    normals = target_normals(inliers, normals_from)
+    normals = target_normals(inliers, target)
     center = inliers.mean(axis=0)
     arm = inliers - center
     length = max(float(np.sqrt(np.mean(np.sum(arm**2, axis=1)))), 1e-300)
@@ -363,7 +361,7 @@ def verdict(
     on_surface = index if surface is target else NearestNeighbors(surface)
     distances, _ = on_surface.query(moved, distance_upper_bound=radius)
     inliers = moved[distances <= radius]
-    motions = free_motions(moved, inliers, on_surface, on_surface, target_spacing)
+    motions = free_motions(moved, inliers, on_surface, target_spacing)
     if motions:
         failures.append(describe_free(motions, inliers))
     rival = symmetric_rival(subset, on_surface, transform, inliers, target_spacing)

@@ -66,13 +66,13 @@ def test_a_plane_leaves_three_motions_free_and_a_bumpy_shape_none():
     """Two independent samplings of each (an exact copy fits only at its own points)."""
     plane, other = _plane(3000, 0), _plane(800, 1) * [0.5, 0.5, 1.0] + [0.25, 0.25, 0.0]
     index = NearestNeighbors(plane)
-    free = trust.free_motions(other, other, index, index, trust.spacing_of(plane))
+    free = trust.free_motions(other, other, index, trust.spacing_of(plane))
     assert sorted(motion.kind for motion in free) == ["rotation", "translation", "translation"]
     rotation = next(motion for motion in free if motion.kind == "rotation")
     assert abs(rotation.axis[2]) > 0.99  # about the plane's normal
     shape, other = bumpy(3000, 0), bumpy(800, 1)
     index = NearestNeighbors(shape)
-    assert trust.free_motions(other, other, index, index, trust.spacing_of(shape)) == []
+    assert trust.free_motions(other, other, index, trust.spacing_of(shape)) == []
 
 
 def test_chance_decides_with_a_margin_and_either_a_factor_or_the_misses():

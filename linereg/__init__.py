@@ -4,7 +4,7 @@ The core modules (``linereg.se3``, ``linereg.procrustes``, ``linereg.knn``, ``li
 ``linereg.metrics``, ``linereg.io``, ...) hold the geometry shared by every layer; the
 subpackages ``linereg.losses``, ``linereg.models``, ``linereg.datasets``,
 ``linereg.registration`` and ``linereg.train`` build on them. :func:`register` aligns two
-clouds (imported on first use, so ``import linereg`` does not load torch).
+clouds and :func:`register_scans` many (imported on first use, so ``import linereg`` does not load torch).
 
 Conventions, stated once for the whole project:
 
@@ -22,7 +22,7 @@ from pathlib import Path
 from typing import Any
 
 __version__ = "0.1.0"
-__all__ = ["RegistrationResult", "__version__", "register", "register_many"]
+__all__ = ["MultiwayOptions", "RegistrationResult", "__version__", "register", "register_many", "register_scans"]
 
 # In a source checkout the subpackages live in top-level folders (losses/, models/, ...) next to
 # this one; the wheel maps them into linereg/. Make them importable as linereg.<name> from the
@@ -34,6 +34,8 @@ if not (Path(__file__).resolve().parent / "losses").is_dir() and (_CHECKOUT / "l
 _LAZY = {
     "register": "linereg.registration.api",
     "register_many": "linereg.registration.many",
+    "register_scans": "linereg.registration.multiway",
+    "MultiwayOptions": "linereg.registration.multiway",
     "RegistrationResult": "linereg.registration.api",
 }
 

@@ -13,7 +13,8 @@ plane-to-plane steps (:mod:`~linereg.registration.planes`) and their settings
 first needed (a name not yet registered, or a listing), so that importing this package does not
 import torch. :func:`register` runs any of them, or a trained network, on arrays, tensors,
 Open3D clouds or files, applies an initial guess (:func:`run_with_init`) and scores every result
-alike (:func:`~linereg.registration.evaluation.assess_registration`).
+alike (:func:`~linereg.registration.evaluation.assess_registration`); :func:`register_scans`
+(:mod:`~linereg.registration.multiway`) places many scans in one frame through a pose graph.
 """
 
 from typing import Any
@@ -23,16 +24,20 @@ from linereg.registration.api import RegistrationResult, register
 from linereg.registration.learned import LearnedRegistration
 from linereg.registration.many import register_many
 from linereg.registration.methods import METHODS, Method, MethodResult, run_centered, run_with_init
+from linereg.registration.multiway import MultiwayOptions, MultiwayResult, register_scans
 
 __all__ = [
     "METHODS",
     "LearnedRegistration",
     "Method",
     "MethodResult",
+    "MultiwayOptions",
+    "MultiwayResult",
     "RegistrationResult",
     "baselines",
     "register",
     "register_many",
+    "register_scans",
     "robust",
     "run_centered",
     "run_with_init",

@@ -12,6 +12,7 @@ config root so that ``loss=...`` names a loss, not the training configs' ``loss`
     python -m train.register source=a.ply target=b.ply method=svd_irls      # IRLS/SVD solver
     python -m train.register source=a.ply target=b.ply method=icp_point     # any registered method
     python -m train.register source=a.ply target=b.ply method=rpm_ours_airplane refine=true  # a network
+    python -m train.register scans=scans/ mode=unordered gt=scans.conf  # many scans into one frame
 
 ``method=`` takes what :func:`linereg.register` takes: a name of
 :data:`linereg.registration.METHODS` (the settings of ``robust``, ``adam_loss`` and ``svd_irls``
@@ -323,6 +324,27 @@ def _register_pairs(cfg: DictConfig, out_dir: Path) -> None:
     )
 
 
+def _register_scans(cfg: DictConfig, out_dir: Path) -> None:
+    """``scans=<folder>``: :func:`~linereg.train.register_scans.register_folder_scans`, and a summary."""
+    from linereg.train.register_scans import register_folder_scans
+
+    for key in ("source", "target", "init", "pairs"):
+        if cfg[key] is not None:
+            raise RegisterError(f"{key}= is not for scans=<folder>, which registers the folder's scans with each other")
+    if cfg.scale:
+        raise RegisterError("scale=true is for one pair (source=, target=), not scans=<folder>")
+    summary = register_folder_scans(cfg, out_dir, method_config(cfg))
+    print(
+        f"{summary['placed']} of {summary['scans']} scans placed; {summary['edges']} edges "
+        f"({summary['registered']} registered, {summary['resumed']} already in edges.csv), "
+        f"{summary['seconds_per_edge']:.2f} s per edge, {summary['seconds']:.1f} s in all"
+    )
+    if summary["errors"] is not None:
+        rotation, translation = summary["errors"]
+        print(f"largest error of a placed scan against gt: {rotation:.3f} deg, {translation:.4g} (input units)")
+    print(f"outputs in {out_dir}: poses.txt, edges.csv, scans.csv, merged.ply")
+
+
 @hydra.main(version_base="1.3", config_path=f"{CONFIG_DIR}/register", config_name="register")
 def _register_app(cfg: DictConfig) -> None:
     out_dir = Path(hydra.core.hydra_config.HydraConfig.get().runtime.output_dir)
@@ -331,9 +353,12 @@ def _register_app(cfg: DictConfig) -> None:
         if cfg.pairs is not None:
             _register_pairs(cfg, out_dir)
             return
+        if cfg.scans is not None:
+            _register_scans(cfg, out_dir)
+            return
         missing = [f"{key}=... (a point-cloud file)" for key in ("source", "target") if cfg[key] is None]
         if missing:
-            fail(COMMAND, f"missing {', '.join(missing)}, or pairs=<folder>; see {COMMAND} --help")
+            fail(COMMAND, f"missing {', '.join(missing)}, pairs=<folder> or scans=<folder>; see {COMMAND} --help")
         result, report = register_files(cfg, out_dir)
     np.set_printoptions(precision=6, suppress=True)
     print(f"source -> target transform ({result.seconds:.2f} s):")

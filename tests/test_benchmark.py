@@ -380,3 +380,38 @@ def test_partial_vs_whole_source_on_the_shared_airplanes(shared_data):
     assert [pair.src_xyz.shape for pair in pairs] == [(1024, 3)] * 2
     assert [pair.tgt_xyz.shape for pair in pairs] == [(2048, 3)] * 2
     assert all(np.abs(pair.tgt_xyz).max() <= 1.0 + 0.2 * np.sqrt(3) + 1e-5 for pair in pairs)
+
+
+@pytest.fixture(scope="module")
+def network_run(tmp_path_factory):
+    """A run folder of ``python -m train``'s format holding a small untrained RPM-Net."""
+    from linereg.models import MODELS
+    from linereg.train.checkpoint import save_checkpoint
+
+    model_config = {"name": "rpmnet", "feature_dim": 16, "num_neighbors": 8, "test_iters": 2}
+    torch.manual_seed(0)
+    run = tmp_path_factory.mktemp("run")
+    model = MODELS.build(model_config)
+    state = {"config": {"model": model_config, "trainer": {"num_points": 256}}, "model": model.state_dict()}
+    save_checkpoint(state, run / "checkpoints" / "best.pt")
+    return run
+
+
+def test_networks_run_bare_and_finished_by_the_solver(network_run):
+    pair = _tiny_pair(1, num_points=600)
+    presets = {"finished": {"network": str(network_run), "refine": True}}
+
+    records = run_benchmark([pair], build_methods([str(network_run), "finished"], presets), progress=False)
+
+    bare, finished = records
+    assert bare["info"]["path"] == "network"
+    assert finished["info"]["path"] in ("polished network", "solver")
+    assert finished["err_r_deg"] < 0.5 and finished["confident"]
+    assert finished["err_r_deg"] < bare["err_r_deg"]
+
+
+def test_refine_finishes_every_network_but_no_other_method(network_run):
+    methods = build_methods([str(network_run), "icp_point"], {}, refine=True)
+
+    assert methods[str(network_run)].finish is not None
+    assert not hasattr(methods["icp_point"], "finish")

@@ -25,6 +25,7 @@ import torch
 from tqdm.auto import tqdm
 
 import linereg.registration  # noqa: F401  (importing registers the baselines and solvers)
+from linereg import pretrained
 from linereg.datasets.benchmark_pairs import labelled_pairs, select_pairs
 from linereg.metrics import ERROR_KEYS, registration_errors
 from linereg.registration.api import quality
@@ -36,6 +37,7 @@ from linereg.registration.benchmark_results import (
     results_content,
     results_table,
 )
+from linereg.registration.learned import LearnedRegistration
 from linereg.registration.methods import METHODS, Method
 from linereg.registry import UnknownNameError
 from linereg.structures import PairSample
@@ -193,16 +195,21 @@ def write_results(
     return paths
 
 
-def build_methods(selected: Sequence[str], presets: Mapping[str, Mapping[str, Any]]) -> dict[str, Method]:
-    """Methods to run, by display name: an entry of ``presets`` or a registered method name.
+def build_methods(
+    selected: Sequence[str], presets: Mapping[str, Mapping[str, Any]], refine: bool = False
+) -> dict[str, Method]:
+    """Methods to run, by display name: an entry of ``presets``, a registered method name, or a
+    network (a pretrained name of :mod:`linereg.pretrained` or a checkpoint / run folder).
 
     Args:
         selected: display names.
-        presets: display name -> ``{name: <registered method>, **kwargs}``.
+        presets: display name -> ``{name: <registered method>, **kwargs}``, or ``{network: <a
+            network>, refine: ..., **kwargs}`` (:class:`~linereg.registration.learned.LearnedRegistration`).
+        refine: finish every network's pose with the solver, unless its preset says otherwise.
 
     Raises:
-        linereg.registry.UnknownNameError: a name neither in ``presets`` nor registered (both
-            lists in the message).
+        linereg.registry.UnknownNameError: a name neither in ``presets``, registered nor a network
+            (the lists in the message).
     """
     methods = {}
     for display in selected:
@@ -210,12 +217,19 @@ def build_methods(selected: Sequence[str], presets: Mapping[str, Mapping[str, An
             config = dict(presets[display])
         elif display in METHODS:
             config = {"name": display}
+        elif pretrained.is_name(display) or Path(display).expanduser().exists():
+            config = {"network": display}
         else:
             raise UnknownNameError(
-                f"unknown method {display!r}: not in method_presets ({', '.join(presets) or 'empty'}) "
-                f"nor registered ({', '.join(METHODS.names())})"
+                f"unknown method {display!r}: not in method_presets ({', '.join(presets) or 'empty'}), "
+                f"registered ({', '.join(METHODS.names())}), a pretrained network ({', '.join(pretrained.names())}) "
+                "nor an existing checkpoint or run folder"
             )
-        methods[display] = METHODS.build(config)
+        if "network" in config:
+            network = config.pop("network")
+            methods[display] = LearnedRegistration(network, **{"refine": refine, **config})
+        else:
+            methods[display] = METHODS.build(config)
     return methods
 
 
@@ -223,11 +237,14 @@ def benchmark(config: Mapping[str, Any]) -> dict[str, Path]:
     """Run a benchmark config (``configs/benchmark.yaml``) and write its results.
 
     Keys: ``benchmark`` (pair source config), ``methods`` (display names), ``method_presets``,
-    ``pairs``, ``seed``, ``out``, ``relative_alpha``, ``alphas``, ``progress``. Records are
-    journaled to ``<out>/records.jsonl``: rerunning with the same ``out`` resumes.
+    ``refine`` (finish the networks' poses with the solver), ``pairs``, ``seed``, ``out``,
+    ``relative_alpha``, ``alphas``, ``progress``. Records are journaled to ``<out>/records.jsonl``:
+    rerunning with the same ``out`` resumes.
     """
     pairs = select_pairs(config["benchmark"], pairs=config.get("pairs"), seed=int(config.get("seed", 0)))
-    methods = build_methods(list(config["methods"]), config.get("method_presets") or {})
+    methods = build_methods(
+        list(config["methods"]), config.get("method_presets") or {}, refine=bool(config.get("refine", False))
+    )
     Path(config["out"]).mkdir(parents=True, exist_ok=True)
     journal = Path(config["out"]) / "records.jsonl"
     records = run_benchmark(pairs, methods, progress=bool(config.get("progress", True)), journal=journal)

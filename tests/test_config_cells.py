@@ -234,8 +234,8 @@ PAPER_DEFAULT = (
     "trainer.evaluate_checkpoint",
     "dataset.protocol.num_points",
 )
-# recipe=paper without an experiment sizes RPM-Net as the paper does (64 neighbours per ball, the
-# rpm_ours cell's); the reference holds the 16 of the CPU model it used to keep under every recipe.
+# recipe=paper without an experiment sizes RPM-Net as the paper does (64 neighbours per ball,
+# recipe_model/paper_rpmnet.yaml); the reference holds the 16 of the CPU model it used to keep.
 PAPER_SIZE = {"model.num_neighbors": 64}
 
 
@@ -320,6 +320,7 @@ TRAINING_GROUPS = (
     "paths",
     "protocol",
     "recipe",
+    "recipe_model",
     "cell",
     "scheduler",
 )
@@ -371,11 +372,11 @@ def test_experiment_files_hold_the_model_the_loss_and_the_task():
 
 
 def test_specialisation_files_name_existing_choices():
-    """A misspelt cell file would never load: each names real options. Every curriculum file is the
-    stages of a cell (named in its defaults list) or a preset of the command line."""
+    """A misspelt file of an optional defaults entry would never load: each names real options. Every
+    curriculum file is the stages of a cell (named in its defaults list) or a preset of the command line."""
     recipes, protocols = _options("recipe"), _options("protocol")
-    cells = {f"{r}_{p}_{loss}" for r in recipes for p in protocols for loss in _options("loss")}
-    assert set(_options("cell")) <= cells
+    assert set(_options("recipe_model")) <= {f"{r}_{m}" for r in recipes for m in _options("model")}
+    assert set(_options("cell")) <= {f"{r}_{p}_{loss}" for r in recipes for p in protocols for loss in _options("loss")}
     named = {
         entry["/curriculum"]
         for path in (CONFIGS / "cell").glob("*.yaml")

@@ -103,10 +103,10 @@ def test_a_cell_reads_its_cell_file():
     the run without an experiment the cell of its loss (rpm_ours); every value of a cell file is its own."""
     found = setters({"cell": ["experiment=rpm_ours", "protocol=human"], "default": ["recipe=paper"]})
     assert found["cell"]["loss.num_lines"] == ["cell/cpu_human_rpm_ours.yaml"]
-    assert found["cell"]["model.num_neighbors"] == ["cell/cpu_human_rpm_ours.yaml"]
+    assert found["cell"]["model.num_neighbors"] == ["recipe_model/cpu_rpmnet.yaml"]
     assert found["cell"]["dataset.root"] == ["dataset/human_bodies.yaml"]
     assert found["default"]["loss.num_lines"] == ["cell/paper_none_rpm_ours.yaml"]
-    assert found["default"]["model.num_neighbors"] == ["cell/paper_none_rpm_ours.yaml"]
+    assert found["default"]["model.num_neighbors"] == ["recipe_model/paper_rpmnet.yaml"]
 
 
 def test_every_recipe_protocol_and_loss_has_its_cell_file():

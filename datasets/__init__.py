@@ -18,6 +18,7 @@ from memory) and ``cache_workers`` (processes used to fill it; default all cores
 
 from __future__ import annotations
 
+import inspect
 from collections.abc import Mapping
 from typing import Any
 
@@ -45,6 +46,7 @@ __all__ = [
     "PairDataset",
     "build_dataset",
     "collate_pairs",
+    "configured_half_extent",
     "item_rng",
     "materialize",
 ]
@@ -78,3 +80,18 @@ def build_dataset(config: Mapping[str, Any]) -> Dataset:
             raise ValueError(f"dataset {config['name']!r} is already a cache; drop 'cache_dir'")
         return materialize(dataset, cache_options["cache_dir"], workers=cache_options.get("cache_workers"))
     return dataset
+
+
+def configured_half_extent(config: Mapping[str, Any]) -> float | None:
+    """Half the side of the cube ``[-h, h]^3`` a dataset config scales its pairs into (``None``: the
+    pairs keep their own units): ``half_extent`` of the config or of its pair protocol, else its
+    builder's default, else 1 (the pair protocols' cube)."""
+    for section in (config, config.get("protocol") or {}):
+        if isinstance(section, Mapping) and "half_extent" in section:
+            return section["half_extent"]
+    name = config.get("name")
+    if name in DATASETS.names():
+        parameter = inspect.signature(DATASETS.get(name)).parameters.get("half_extent")
+        if parameter is not None and parameter.default is not inspect.Parameter.empty:
+            return parameter.default
+    return 1.0

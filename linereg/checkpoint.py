@@ -2,7 +2,9 @@
 
 A checkpoint is a ``torch.save`` dict holding only tensors and plain Python values, so it loads
 with ``torch.load(weights_only=True)``; its ``format`` is ``"linereg-checkpoint"``, ``version`` 1,
-``config`` the run's resolved config and ``model`` the model's state dict. Runs keep
+``config`` the run's resolved config, ``model`` the model's state dict and ``half_extent`` the cube
+``[-h, h]^3`` its training pairs were scaled into (``None``: their own units; older checkpoints lack
+it: :func:`linereg.registration.learned.upgrade_checkpoint`). Runs keep
 ``<run>/checkpoints/last.pt`` (every epoch) and ``best.pt`` (best monitored metric).
 """
 

@@ -29,9 +29,11 @@ from linereg.registration.methods import METHODS, MethodResult, run_with_init, t
 
 DEFAULT_SOLVER = "robust"
 
-POLISH_ONLY = {"starts": 1, "coarse_steps": 0, "rounds": 1, "global_candidates": "never"}
-"""The solver's options of the polish that finishes a network's pose: from that pose alone, no
-coarse stage, no later round, no global candidates (the Welsch IRLS polish and the fine steps)."""
+POLISH_ONLY = {"starts": 1, "coarse_sides": ["both"], "rounds": 1, "global_candidates": "never"}
+"""The solver's options of the polish that finishes a network's pose: from that pose alone, the
+two-sided coarse IRLS steps, the Welsch IRLS polish and the fine steps; no later round, no global
+candidates. The coarse steps bring a view the network left a few degrees off into the basin that the
+polish finishes; both clouds keep the network's relative pose (:meth:`Finish.polish`)."""
 
 
 class _Prepared(NamedTuple):
@@ -52,7 +54,7 @@ class LearnedRegistration:
     """A network trained by ``python -m train`` as a registration method, optionally finished by the solver.
 
     The clouds are centred, farthest-point sampled to the run's ``trainer.num_points``, scaled
-    together into the cube its training pairs were scaled into (:func:`training_half_extent`),
+    together into the cube its training pairs were scaled into (the checkpoint's ``half_extent``),
     given normals (estimated on the subsets); of the model's iterates, the one the run's ``iterate``
     rule chooses (:mod:`linereg.registration.iterates`, from the checkpoint's config) is mapped back
     to the original frames.
@@ -84,7 +86,7 @@ class LearnedRegistration:
         self.checkpoint = state["path"]
         self.iterate = IterateRule.from_config(state["config"].get("iterate"))
         self.num_points = num_points or state["config"].get("trainer", {}).get("num_points") or 1024
-        self.half_extent = training_half_extent(state["config"].get("dataset") or {})
+        self.half_extent = state["half_extent"]
         self.finish = None
         if refine:
             self.finish = Finish(refine if isinstance(refine, Mapping) else None)
@@ -172,7 +174,7 @@ class Finish:
 
     def __init__(self, options: Mapping[str, Any] | None = None) -> None:
         options = dict(options or {})
-        self.polisher = METHODS.build({"name": DEFAULT_SOLVER, "options": {**POLISH_ONLY, **options}})
+        self.polisher = METHODS.build({"name": DEFAULT_SOLVER, "center": False, "options": {**POLISH_ONLY, **options}})
         self.solver = METHODS.build({"name": DEFAULT_SOLVER, "options": options})
 
     def __call__(self, src: np.ndarray, tgt: np.ndarray, start: np.ndarray) -> MethodResult:
@@ -183,7 +185,7 @@ class Finish:
         (:func:`preferred`). ``info["path"]``: ``"polished network"`` or ``"solver"``, with
         ``"solver_ran"``."""
         began = time.perf_counter()
-        polished = run_with_init(self.polisher, src, tgt, init=start)
+        polished = self.polish(src, tgt, start)
         judged = assess_registration(src, tgt, polished.transform)
         info = {"solver_ran": False, "polished_confident": judged.confident}
         if judged.confident:
@@ -196,13 +198,23 @@ class Finish:
         return MethodResult(winner.transform, time.perf_counter() - began, {**winner.info, **info, "path": path})
 
 
+    def polish(self, src: np.ndarray, tgt: np.ndarray, start: np.ndarray) -> MethodResult:
+        """The local polish of ``start (4, 4)``: both clouds shifted by the target's centroid alone
+        (centring each on its own centroid, as the solver does from scratch, would drop the
+        network's translation)."""
+        centroid = tgt.mean(axis=0)
+        polished = run_with_init(self.polisher, src, tgt - centroid, init=translation(-centroid) @ start)
+        return MethodResult(translation(centroid) @ polished.transform, polished.seconds, polished.info)
+
+
 @functools.lru_cache(maxsize=4)
 def _loaded(checkpoint: str, device: str):
-    """:func:`linereg.models.load_model`, once per checkpoint and device in a process (the model is
-    only read: evaluation mode, ``torch.no_grad``)."""
+    """:func:`linereg.models.load_model` with :func:`upgrade_checkpoint`, once per checkpoint and device
+    in a process (the model is only read: evaluation mode, ``torch.no_grad``)."""
     from linereg.models import load_model
 
-    return load_model(checkpoint, device)
+    model, state = load_model(checkpoint, device)
+    return model, upgrade_checkpoint(state)
 
 
 def preferred(first: Assessment, second: Assessment) -> bool:
@@ -217,20 +229,12 @@ def preferred(first: Assessment, second: Assessment) -> bool:
     return rank(first) > rank(second)
 
 
-def training_half_extent(dataset: Mapping[str, Any]) -> float | None:
-    """Half the side of the cube ``[-h, h]^3`` a run's pairs were scaled into, from its dataset config
-    (``half_extent`` of the dataset or of its pair protocol, else the dataset builder's default;
-    ``None``: the clouds' own units)."""
-    import inspect
+def upgrade_checkpoint(state: dict[str, Any]) -> dict[str, Any]:
+    """``state`` with ``half_extent``, the cube ``[-h, h]^3`` its network was trained in (``None``: the
+    pairs' own units), in place: a checkpoint written before training recorded it gets the cube of its
+    dataset config (:func:`linereg.datasets.configured_half_extent`)."""
+    from linereg.datasets import configured_half_extent
 
-    from linereg.datasets import DATASETS
-
-    for section in (dataset, dataset.get("protocol") or {}):
-        if "half_extent" in section:
-            return section["half_extent"]
-    name = dataset.get("name")
-    if name in DATASETS.names():
-        parameter = inspect.signature(DATASETS.get(name)).parameters.get("half_extent")
-        if parameter is not None and parameter.default is not inspect.Parameter.empty:
-            return parameter.default
-    return 1.0
+    if "half_extent" not in state:
+        state["half_extent"] = configured_half_extent(state["config"].get("dataset") or {})
+    return state

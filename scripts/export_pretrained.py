@@ -4,7 +4,7 @@
 
 The file holds the checkpoint the run evaluated (``<run>/metrics.json``), reduced to the model
 weights, the run's resolved config without its folders (``paths``) and with portable data paths
-(:func:`linereg.pretrained.portable_config`), and its epoch: no optimiser, RNG or generator
+(:func:`linereg.pretrained.portable_config`), the cube it was trained in and its epoch: no optimiser, RNG or generator
 state. The script then scores the written file on the run's test pairs, as
 ``linereg-evaluate checkpoint=<name>`` does, and prints that Err_R beside the run's own, for the
 entry of :data:`linereg.pretrained.REGISTRY`.
@@ -22,6 +22,7 @@ from pathlib import Path
 from linereg.checkpoint import load_checkpoint
 from linereg.paths import shared_data_dir
 from linereg.pretrained import WEIGHTS_DIR, portable_config
+from linereg.registration.learned import upgrade_checkpoint
 from linereg.train.checkpoint import save_checkpoint
 
 # Config entries that describe the machine and folders of the training run, not the network.
@@ -30,7 +31,7 @@ RUN_DEPENDENT = ("paths", "hydra")
 
 def export(run: Path, name: str, out_dir: Path = WEIGHTS_DIR) -> Path:
     """Write ``<out_dir>/<name>.pt`` from the checkpoint ``run`` evaluated; returns the file."""
-    state = load_checkpoint(run)
+    state = upgrade_checkpoint(load_checkpoint(run))
     shared = shared_data_dir()
     if shared is None:
         raise SystemExit("export_pretrained.py: error: the shared data folder is absent (set LINEREG_SHARED_DATA)")
@@ -38,6 +39,7 @@ def export(run: Path, name: str, out_dir: Path = WEIGHTS_DIR) -> Path:
     config = {key: value for key, value in state["config"].items() if key not in RUN_DEPENDENT}
     slim = {
         "config": portable_config(config, shared, cache),
+        "half_extent": state["half_extent"],
         "model": {key: value.detach().cpu().contiguous() for key, value in state["model"].items()},
         "progress": {"epoch": state["progress"]["epoch"]},
         "pretrained": name,

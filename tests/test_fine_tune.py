@@ -1,5 +1,6 @@
 """Fine-tuning on unlabelled scans: the start network's settings are kept, the checkpoint is chosen by
-register's check on the held-out pairs without reading a pose, and the start network is a candidate."""
+register's check on the held-out pairs without reading a pose, and the start network is a candidate;
+a checkpoint carries the cube its network was trained in."""
 
 from __future__ import annotations
 
@@ -7,9 +8,11 @@ import json
 import math
 
 import pytest
+import torch
 from omegaconf import OmegaConf
 
 from linereg.checkpoint import load_checkpoint
+from linereg.registration.learned import LearnedRegistration, upgrade_checkpoint
 from linereg.train import loop
 from linereg.train.fine_tune import given_keys, keep_start_settings
 from linereg.train.validation import CHECK_SCORE, Monitor
@@ -106,3 +109,23 @@ def test_the_check_score_breaks_ties_by_the_loss():
             "tie": 0.4,
         }
     )
+
+
+def test_a_checkpoint_carries_the_cube_it_was_trained_in(start_network, tmp_path):
+    _, start = start_network
+    state = load_checkpoint(start)
+    assert state["half_extent"] == 2.0
+    assert LearnedRegistration(start).half_extent == 2.0
+    older = {key: value for key, value in torch.load(state["path"], weights_only=True).items() if key != "half_extent"}
+    torch.save(older, tmp_path / "older.pt")
+    assert "half_extent" not in load_checkpoint(tmp_path / "older.pt")
+    assert upgrade_checkpoint(load_checkpoint(tmp_path / "older.pt"))["half_extent"] == 2.0  # its dataset config's
+
+
+@pytest.mark.parametrize(
+    ("name", "cube"), [("rpm_ours_airplane", 1.0), ("rpm_ours_real", 5.0), ("rpm_ours_objects", 1.0)]
+)
+def test_a_shipped_network_without_the_field_keeps_the_cube_of_its_dataset(name, cube):
+    assert "half_extent" not in load_checkpoint(name)
+    assert LearnedRegistration(name).half_extent == cube
+    assert upgrade_checkpoint(load_checkpoint(name))["half_extent"] == cube

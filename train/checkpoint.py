@@ -5,6 +5,7 @@ with ``torch.load(weights_only=True)``::
 
     format, version     "linereg-checkpoint", 1
     config              the resolved run config (model, loss, dataset, curriculum, ...)
+    half_extent         the cube [-h, h]^3 the training pairs were scaled into (None: their own units)
     model               model state dict
     optimizer, scheduler, scaler
     progress            {epoch: the epoch to run (or to finish), batch: its batches already run

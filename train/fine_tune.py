@@ -18,23 +18,24 @@ from typing import Any
 from omegaconf import DictConfig, OmegaConf, open_dict
 
 from linereg.checkpoint import load_checkpoint
+from linereg.registration.learned import upgrade_checkpoint
 
 log = logging.getLogger(__name__)
 
 
-def start_settings(start_config: Mapping[str, Any], dataset: Mapping[str, Any]) -> dict[str, Any]:
-    """``{dotted key: value}`` a fine-tuning run takes from its start network's run config.
+def start_settings(start: Mapping[str, Any], dataset: Mapping[str, Any]) -> dict[str, Any]:
+    """``{dotted key: value}`` a fine-tuning run takes from its start network's checkpoint.
 
     Args:
-        start_config: the start network's resolved run config.
+        start: the start network's checkpoint (:func:`~linereg.registration.learned.upgrade_checkpoint`:
+            its ``half_extent``, and its resolved run ``config``).
         dataset: the fine-tuning run's dataset config (``half_extent`` is kept only where it has one).
     """
-    from linereg.registration.learned import training_half_extent
-
+    start_config = start["config"]
     settings: dict[str, Any] = {"trainer.num_points": start_config["trainer"]["num_points"]}
     settings.update({f"iterate.{key}": value for key, value in (start_config.get("iterate") or {}).items()})
     if "half_extent" in dataset:
-        settings["dataset.half_extent"] = training_half_extent(start_config.get("dataset") or {})
+        settings["dataset.half_extent"] = start["half_extent"]
     settings["trainer.evaluate_checkpoint"] = "best"
     return settings
 
@@ -59,11 +60,11 @@ def keep_start_settings(cfg: DictConfig, overrides: Sequence[str] | None) -> lis
     Returns:
         One line per setting that differs from the composed config (also logged).
     """
-    start = load_checkpoint(cfg.init_from)
+    start = upgrade_checkpoint(load_checkpoint(cfg.init_from))
     name = cfg.init_from
     given = given_keys(overrides)
     notes = []
-    for key, value in start_settings(start["config"], cfg.dataset).items():
+    for key, value in start_settings(start, cfg.dataset).items():
         current = OmegaConf.select(cfg, key)
         if current == value:
             continue

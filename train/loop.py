@@ -49,6 +49,7 @@ from torch import nn
 from tqdm.auto import tqdm
 
 from linereg.checkpoint import BEST, CHECKPOINT_DIR, LAST, load_checkpoint
+from linereg.datasets import configured_half_extent
 from linereg.datasets.splits import build_split
 from linereg.losses import build_loss, set_training_progress
 from linereg.models import MODELS, upgrade_run_config
@@ -92,6 +93,7 @@ class Trainer:
         self.amp = distributed.amp_dtype(self.settings.amp, self.device)
         self.seed = int(config["seed"])
         self.model = MODELS.build(config["model"]).to(self.device)
+        self.half_extent = configured_half_extent(config["dataset"])
         self.loss = loss.to(self.device)
         self.curriculum = Curriculum.from_config(config["curriculum"], allow_empty=self.settings.untrained)
         self.curriculum.check_variants(config["dataset"])
@@ -124,6 +126,7 @@ class Trainer:
         stage = None if self.stage_index is None else self.curriculum.stages[self.stage_index]
         return {
             "config": self.config,
+            "half_extent": self.half_extent,
             "model": distributed.unwrap(self.model).state_dict(),
             "optimizer": self.optimizer.state_dict(),
             "scheduler": None if self.scheduler is None else self.scheduler.state_dict(),

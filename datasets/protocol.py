@@ -237,17 +237,6 @@ def subsample(points: np.ndarray, num_points: int | None, rng: np.random.Generat
     return resample_indices(len(points), num_points, rng)
 
 
-def scale_transform(transform: np.ndarray, center: np.ndarray, scale: float) -> np.ndarray:
-    """A source-to-target transform expressed between clouds mapped by ``x' = (x - c) * s``.
-
-    ``(R, t)`` becomes ``(R, (t + R c - c) s)`` (see :func:`linereg.pointcloud.fit_into_cube`).
-    """
-    scaled = np.array(transform, dtype=np.float64)
-    rotation = scaled[:3, :3]
-    scaled[:3, 3] = (scaled[:3, 3] + rotation @ center - center) * scale
-    return scaled
-
-
 def _stretch(factors: np.ndarray, center: np.ndarray, points: np.ndarray, normals: np.ndarray):
     """``(N, 3)`` points scaled by ``factors`` per axis about ``center``, and their normals
     (scaled by the inverse factors, renormalised)."""

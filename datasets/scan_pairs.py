@@ -8,8 +8,8 @@ from typing import Any
 
 import numpy as np
 
-from linereg.datasets.protocol import float32_or_none, scale_transform, subsample
-from linereg.pointcloud import estimate_normals, fit_into_cube, resample_indices
+from linereg.datasets.protocol import float32_or_none, subsample
+from linereg.pointcloud import estimate_normals, fit_into_cube, resample_indices, scale_transform
 from linereg.structures import PairSample
 
 

@@ -343,6 +343,15 @@ def fit_into_cube(*clouds: np.ndarray, half_extent: float = 1.0) -> tuple[list[n
     return scaled, center, scale
 
 
+def scale_transform(transform: np.ndarray, center: np.ndarray, scale: float) -> np.ndarray:
+    """A ``(4, 4)`` source-to-target transform expressed between clouds mapped by ``x' = (x - c) * s``
+    (``center (3,)``, ``scale``): ``(R, t)`` becomes ``(R, (t + R c - c) s)`` (:func:`fit_into_cube`'s map)."""
+    scaled = np.array(transform, dtype=np.float64)
+    rotation = scaled[:3, :3]
+    scaled[:3, 3] = (scaled[:3, 3] + rotation @ center - center) * scale
+    return scaled
+
+
 def hidden_point_removal(points: np.ndarray, camera: np.ndarray, *, radius_factor: float = 100.0) -> np.ndarray:
     """Indices of the points visible from ``camera`` (Katz et al. 2007, via Open3D).
 

@@ -106,7 +106,7 @@ class LearnedRegistration:
     def predict_many(self, pairs: Sequence[tuple[np.ndarray, np.ndarray]], batch_size: int = 32) -> list[np.ndarray]:
         """The network's ``(4, 4)`` pose of every pair ``(src (N, 3), tgt (M, 3))``, in order: pairs
         whose subsets have the same sizes go through the model together, ``batch_size`` at a time."""
-        from linereg.datasets.protocol import scale_transform
+        from linereg.pointcloud import scale_transform
 
         prepared = [self._prepare(np.asarray(src, np.float64), np.asarray(tgt, np.float64)) for src, tgt in pairs]
         poses: list[np.ndarray | None] = [None] * len(prepared)

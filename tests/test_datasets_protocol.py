@@ -15,9 +15,9 @@ from linereg.datasets.protocol import (
     ShapeViews,
     ViewProtocol,
     build_protocol,
-    scale_transform,
 )
 from linereg.datasets.shape_pairs import ShapePairDataset
+from linereg.pointcloud import scale_transform
 
 
 def _apply(transform: np.ndarray, points: np.ndarray) -> np.ndarray:

@@ -49,6 +49,7 @@ from linereg.datasets.splits import build_split
 from linereg.losses import build_loss
 from linereg.metrics import ERROR_KEYS, aggregate_errors, paper_table, registration_errors
 from linereg.models import load_model
+from linereg.pointcloud import scale_transform
 from linereg.registration.evaluation import INLIER_DISTANCES, Assessment, assess_registration
 from linereg.registration.iterates import LAST_ITERATE, IterateRule
 from linereg.registry import plain
@@ -268,8 +269,6 @@ def finished_pairs(T_pred: torch.Tensor, batch: PairBatch, finish: Any, paths: l
     """The estimates ``T_pred (B, 4, 4)`` finished by ``finish`` on each pair in its input units
     (:func:`input_units`) and mapped back into the cube of the batch; each pair's path is appended
     to ``paths``."""
-    from linereg.datasets.protocol import scale_transform
-
     transforms = T_pred.detach().cpu().double().numpy()
     meta = batch.meta or [{} for _ in range(batch.batch_size)]
     finished = []
@@ -294,7 +293,6 @@ def input_units(
     ``meta["target_file"]`` when both are given, else ``src (N, 3)`` and ``tgt (M, 3)`` mapped back by
     ``x = x' / s + c`` (``meta["scale"]``, ``meta["center"]``; as they are without them), and
     ``transform (4, 4)`` between them."""
-    from linereg.datasets.protocol import scale_transform
     from linereg.io import read_point_cloud
 
     scale, center = float(meta.get("scale", 1.0)), np.asarray(meta.get("center", np.zeros(3)), dtype=np.float64)

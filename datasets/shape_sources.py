@@ -27,10 +27,11 @@ from typing import Any
 
 import numpy as np
 
-from linereg.datasets.base import DATASETS
+from linereg.datasets.base import DATASETS, existing_folder
 from linereg.datasets.protocol import Shape, build_protocol
 from linereg.datasets.shape_pairs import ShapePairDataset
 from linereg.io import MESH_SUFFIXES, read_mesh, read_point_cloud
+from linereg.registry import keywords_of
 
 SPLITS = ("train", "test", "all")
 SPLIT_RULES = ("official", "random", "views", "held_out")
@@ -49,14 +50,6 @@ MODELNET40_SPLIT_SIZES: dict[str, tuple[int, int]] = {
     "toilet": (344, 100), "tv_stand": (267, 100), "vase": (475, 100), "wardrobe": (87, 20),
     "xbox": (103, 20),
 }  # fmt: skip
-
-
-def _require_dir(root: str | Path, what: str) -> Path:
-    """``root`` as a resolved Path; FileNotFoundError naming ``what`` when it is no folder."""
-    path = Path(root).expanduser()
-    if not path.is_dir():
-        raise FileNotFoundError(f"{what} not found: {path} (is the dataset downloaded there?)")
-    return path.resolve()
 
 
 def _as_list(value: str | Sequence[str] | None) -> list[str] | None:
@@ -148,8 +141,9 @@ class MeshFolderShapes:
         held_out: str | Sequence[str] | None = None,
     ) -> None:
         _check_split(split, split_rule, train_fraction)
-        self.root = _require_dir(root, "mesh folder")
-        self.split = split
+        self.root = existing_folder(root, "mesh folder")
+        self.split, self.split_rule = split, split_rule
+        self.train_fraction, self.split_seed = train_fraction, split_seed
         files = sorted(p for p in self.root.rglob("*") if p.suffix.lower() in MESH_SUFFIXES)
         if not files:
             raise FileNotFoundError(f"no mesh files ({', '.join(MESH_SUFFIXES)}) under {self.root}")
@@ -234,8 +228,9 @@ class ModelNet40Shapes:
             raise ValueError(
                 "split_rule='held_out' is a mesh folder's rule; ModelNet40 takes 'official', 'random' or 'views'"
             )
-        self.root = _require_dir(root, "ModelNet40 folder")
-        self.split = split
+        self.root = existing_folder(root, "ModelNet40 folder")
+        self.split, self.split_rule = split, split_rule
+        self.train_fraction, self.split_seed = train_fraction, split_seed
         if file_format == "auto":
             file_format = "hdf5" if any(self.root.glob("*.h5")) else "text"
         if file_format not in ("text", "hdf5"):
@@ -338,74 +333,28 @@ class ModelNet40Shapes:
 
 
 def _shape_pairs(
-    shapes: MeshFolderShapes | ModelNet40Shapes,
-    protocol: str | Mapping[str, Any],
-    split_rule: str,
-    train_fraction: float,
-    split_seed: int,
-    seed: int,
-    name: str,
+    shapes: MeshFolderShapes | ModelNet40Shapes, protocol: str | Mapping[str, Any], seed: int, name: str
 ) -> ShapePairDataset:
     """The pair dataset of a shape source; the ``"views"`` rule keeps the split's camera stops."""
     protocol = build_protocol(protocol)
     views = None
-    if split_rule == "views":
+    if shapes.split_rule == "views":
         all_views = range(protocol.pairs_per_shape)
-        views = random_split(all_views, shapes.split, train_fraction=train_fraction, split_seed=split_seed)
+        views = random_split(
+            all_views, shapes.split, train_fraction=shapes.train_fraction, split_seed=shapes.split_seed
+        )
     return ShapePairDataset(shapes, protocol, seed=seed, name=name, views=views)
 
 
 @DATASETS.register("mesh_folder")
-def build_mesh_folder(
-    *,
-    root: str,
-    protocol: str | Mapping[str, Any] = "airplane",
-    categories: str | Sequence[str] | None = None,
-    split: str = "all",
-    split_rule: str = "official",
-    train_fraction: float = 0.8,
-    split_seed: int = 0,
-    max_shapes: int | None = None,
-    held_out: str | Sequence[str] | None = None,
-    seed: int = 0,
-) -> ShapePairDataset:
-    """Pairs from any folder of meshes (see :class:`MeshFolderShapes` and the protocol)."""
-    shapes = MeshFolderShapes(
-        root,
-        categories=categories,
-        split=split,
-        split_rule=split_rule,
-        train_fraction=train_fraction,
-        split_seed=split_seed,
-        max_shapes=max_shapes,
-        held_out=held_out,
-    )
-    return _shape_pairs(shapes, protocol, split_rule, train_fraction, split_seed, seed, "mesh_folder")
+@keywords_of(MeshFolderShapes)
+def build_mesh_folder(*, protocol: str | Mapping[str, Any] = "airplane", seed: int = 0, **shapes) -> ShapePairDataset:
+    """Pairs from any folder of meshes (``shapes``: :class:`MeshFolderShapes`'s arguments; see the protocol)."""
+    return _shape_pairs(MeshFolderShapes(**shapes), protocol, seed, "mesh_folder")
 
 
 @DATASETS.register("modelnet40")
-def build_modelnet40(
-    *,
-    root: str,
-    protocol: str | Mapping[str, Any] = "airplane",
-    categories: str | Sequence[str] | None = None,
-    split: str = "train",
-    split_rule: str = "official",
-    train_fraction: float = 0.8,
-    split_seed: int = 0,
-    max_shapes: int | None = None,
-    file_format: str = "auto",
-    seed: int = 0,
-) -> ShapePairDataset:
-    """Pairs from ModelNet40 shapes (see :class:`ModelNet40Shapes` and the protocol)."""
-    shapes = ModelNet40Shapes(
-        root,
-        categories=categories,
-        split=split,
-        split_rule=split_rule,
-        train_fraction=train_fraction,
-        split_seed=split_seed,
-        max_shapes=max_shapes,
-        file_format=file_format,
-    )
-    return _shape_pairs(shapes, protocol, split_rule, train_fraction, split_seed, seed, "modelnet40")
+@keywords_of(ModelNet40Shapes)
+def build_modelnet40(*, protocol: str | Mapping[str, Any] = "airplane", seed: int = 0, **shapes) -> ShapePairDataset:
+    """Pairs from ModelNet40 shapes (``shapes``: :class:`ModelNet40Shapes`'s arguments; see the protocol)."""
+    return _shape_pairs(ModelNet40Shapes(**shapes), protocol, seed, "modelnet40")

@@ -21,7 +21,7 @@ from __future__ import annotations
 import fnmatch
 import inspect
 import warnings
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from typing import Any, Generic, TypeVar
 
 T = TypeVar("T")
@@ -48,6 +48,23 @@ def plain(config: Any) -> Any:
 
         return OmegaConf.to_container(config, resolve=True)
     return config
+
+
+def keywords_of(target: Callable, *, without: Sequence[str] = ()) -> Callable[[Callable], Callable]:
+    """Decorator: a builder that passes ``**options`` on to ``target`` names ``target``'s keyword
+    parameters (less ``without``) beside its own in its signature, so that :meth:`Registry.build`
+    checks a config's keys against them (and lists them) without the builder restating them."""
+
+    def decorate(builder: Callable) -> Callable:
+        keyword = (inspect.Parameter.KEYWORD_ONLY, inspect.Parameter.POSITIONAL_OR_KEYWORD)
+        own = [p for p in inspect.signature(builder).parameters.values() if p.kind in keyword]
+        taken = {p.name for p in own} | set(without)
+        passed = [p for p in inspect.signature(target).parameters.values() if p.kind in keyword and p.name not in taken]
+        parameters = [p.replace(kind=inspect.Parameter.KEYWORD_ONLY) for p in (*passed, *own)]
+        builder.__signature__ = inspect.signature(builder).replace(parameters=parameters)
+        return builder
+
+    return decorate
 
 
 def _keyword_parameters(function: Callable, positional: int) -> list[str] | None:

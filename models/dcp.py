@@ -16,12 +16,14 @@ rigid fit through :func:`linereg.procrustes.weighted_procrustes` (float64, never
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import torch
 from torch import nn
 
 from linereg.knn import knn_points
 from linereg.models.base import MODELS
+from linereg.registry import keywords_of
 from linereg.se3 import inverse
 from linereg.structures import PairBatch, RegistrationOutput
 
@@ -165,6 +167,10 @@ class PointerTransformer(nn.Module):
         )
 
 
+TRANSFORMER_OPTIONS = ("heads", "ff_dims", "blocks", "dropout")
+"""The options of DCP-v2's pointer transformer (:class:`PointerTransformer`), which DCP-v1 has not."""
+
+
 class DCP(nn.Module):
     """Deep Closest Point.
 
@@ -242,52 +248,14 @@ class DCP(nn.Module):
 
 
 @MODELS.register("dcp_v1")
-def dcp_v1(
-    *,
-    emb_dims: int = 512,
-    k: int = 20,
-    emb_nn: str = "dgcnn",
-    cycle: bool = False,
-    norm: NormKind = "group",
-    groups: int | None = None,
-) -> DCP:
-    """DCP-v1: DGCNN embeddings matched directly (no attention)."""
-    return DCP(
-        emb_dims=emb_dims,
-        k=k,
-        emb_nn=emb_nn,
-        pointer="identity",
-        cycle=cycle,
-        norm=norm,
-        groups=groups,
-    )
+@keywords_of(DCP, without=("pointer", *TRANSFORMER_OPTIONS))
+def dcp_v1(**options: Any) -> DCP:
+    """DCP-v1: DGCNN embeddings matched directly (no attention); ``options``: :class:`DCP`'s but the pointer's."""
+    return DCP(pointer="identity", **options)
 
 
 @MODELS.register("dcp_v2")
-def dcp_v2(
-    *,
-    emb_dims: int = 512,
-    k: int = 20,
-    emb_nn: str = "dgcnn",
-    heads: int = 4,
-    ff_dims: int = 1024,
-    blocks: int = 1,
-    dropout: float = 0.0,
-    cycle: bool = False,
-    norm: NormKind = "group",
-    groups: int | None = None,
-) -> DCP:
-    """DCP-v2: DGCNN embeddings corrected by the pointer transformer."""
-    return DCP(
-        emb_dims=emb_dims,
-        k=k,
-        emb_nn=emb_nn,
-        pointer="transformer",
-        heads=heads,
-        ff_dims=ff_dims,
-        blocks=blocks,
-        dropout=dropout,
-        cycle=cycle,
-        norm=norm,
-        groups=groups,
-    )
+@keywords_of(DCP, without=("pointer",))
+def dcp_v2(**options: Any) -> DCP:
+    """DCP-v2: DGCNN embeddings corrected by the pointer transformer; ``options``: :class:`DCP`'s."""
+    return DCP(pointer="transformer", **options)

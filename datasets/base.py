@@ -7,6 +7,7 @@ generator :func:`item_rng`, so DataLoader workers, reruns and the on-disk cache 
 
 from __future__ import annotations
 
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -16,6 +17,14 @@ from linereg.registry import Registry
 from linereg.structures import PairSample
 
 DATASETS: Registry[Dataset] = Registry("dataset")
+
+
+def existing_folder(root: str | Path, what: str) -> Path:
+    """``root`` resolved (``~`` expanded); FileNotFoundError naming ``what`` when it is no folder."""
+    path = Path(root).expanduser()
+    if not path.is_dir():
+        raise FileNotFoundError(f"{what} not found: {path}")
+    return path.resolve()
 
 
 def item_rng(seed: int, *stream: int) -> np.random.Generator:

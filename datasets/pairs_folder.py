@@ -11,7 +11,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
-from linereg.datasets.base import DATASETS, PairDataset, item_rng
+from linereg.datasets.base import DATASETS, PairDataset, existing_folder, item_rng
 from linereg.datasets.scan_pairs import ScanSettings, finish_scan_pair
 from linereg.io import POINT_CLOUD_SUFFIXES, read_point_cloud, read_transform
 from linereg.structures import PairSample
@@ -54,10 +54,7 @@ class FolderPairs(PairDataset):
         half_extent: float | None = None,
         seed: int = 0,
     ) -> None:
-        self.root = Path(root).expanduser()
-        if not self.root.is_dir():
-            raise FileNotFoundError(f"pairs folder not found: {self.root}")
-        self.root = self.root.resolve()
+        self.root = existing_folder(root, "pairs folder")
         sources, targets = _by_stem(self.root, "_src"), _by_stem(self.root, "_tgt")
         if not sources:
             raise FileNotFoundError(

@@ -32,7 +32,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from linereg.datasets.base import DATASETS, PairDataset, item_rng
+from linereg.datasets.base import DATASETS, PairDataset, existing_folder, item_rng
 from linereg.datasets.formats import (
     Intrinsics,
     read_association_list,
@@ -187,6 +187,7 @@ def _default_intrinsics(root: Path, layout: str) -> Intrinsics:
     return DEFAULT_INTRINSICS
 
 
+@DATASETS.register("rgbd_sequence")
 class RgbdSequencePairs(PairDataset):
     """Pairs of depth frames ``frame_gap`` apart from one RGB-D sequence.
 
@@ -203,9 +204,9 @@ class RgbdSequencePairs(PairDataset):
         depth_scale: raw depth units per metre (default: 1000, TUM 5000).
         pixel_stride: back-project every ``pixel_stride``-th pixel.
         max_depth: drop points beyond this depth in metres.
-        num_points: points per cloud after FPS (``None`` keeps all).
-        dense_points: random cap before normal estimation.
-        half_extent: scale pairs into ``[-half_extent, half_extent]^3`` (``None``: metres).
+        num_points, dense_points, half_extent: how each frame pair is sampled and scaled, as the
+            paper's Real pairs by default (:class:`~linereg.datasets.scan_pairs.ScanSettings`;
+            ``half_extent=None`` keeps metres).
         seed: base seed.
     """
 
@@ -224,15 +225,12 @@ class RgbdSequencePairs(PairDataset):
         depth_scale: float | None = None,
         pixel_stride: int = 2,
         max_depth: float | None = None,
-        num_points: int | None = 2048,
-        dense_points: int | None = 20000,
-        half_extent: float | None = 5.0,
+        num_points: int | None = ScanSettings.num_points,
+        dense_points: int | None = ScanSettings.dense_points,
+        half_extent: float | None = ScanSettings.half_extent,
         seed: int = 0,
     ) -> None:
-        self.root = Path(root).expanduser()
-        if not self.root.is_dir():
-            raise FileNotFoundError(f"RGB-D sequence folder not found: {self.root}")
-        self.root = self.root.resolve()
+        self.root = existing_folder(root, "RGB-D sequence folder")
         if layout not in LAYOUTS:
             raise ValueError(f"layout must be one of {LAYOUTS}, got {layout!r}")
         if frame_gap < 1 or pair_stride < 1 or pixel_stride < 1:
@@ -325,40 +323,3 @@ class RgbdSequencePairs(PairDataset):
             "scan": vars(self.scan),
             "seed": self.seed,
         }
-
-
-@DATASETS.register("rgbd_sequence")
-def build_rgbd_sequence(
-    *,
-    root: str,
-    layout: str = "auto",
-    frame_gap: int = 20,
-    pair_stride: int = 1,
-    frame_range: Sequence[int] | None = None,
-    use_poses: bool = True,
-    intrinsics: Sequence[float] | str | None = None,
-    depth_scale: float | None = None,
-    pixel_stride: int = 2,
-    max_depth: float | None = None,
-    num_points: int | None = 2048,
-    dense_points: int | None = 20000,
-    half_extent: float | None = 5.0,
-    seed: int = 0,
-) -> RgbdSequencePairs:
-    """Frame pairs of an RGB-D sequence (see :class:`RgbdSequencePairs`)."""
-    return RgbdSequencePairs(
-        root,
-        layout=layout,
-        frame_gap=frame_gap,
-        pair_stride=pair_stride,
-        frame_range=frame_range,
-        use_poses=use_poses,
-        intrinsics=intrinsics,
-        depth_scale=depth_scale,
-        pixel_stride=pixel_stride,
-        max_depth=max_depth,
-        num_points=num_points,
-        dense_points=dense_points,
-        half_extent=half_extent,
-        seed=seed,
-    )

@@ -23,7 +23,7 @@ from typing import Any
 
 import numpy as np
 
-from linereg.datasets.base import DATASETS, PairDataset, item_rng
+from linereg.datasets.base import DATASETS, PairDataset, existing_folder, item_rng
 from linereg.datasets.formats import read_conf
 from linereg.datasets.scan_pairs import ScanSettings, finish_scan_pair
 from linereg.io import POINT_CLOUD_SUFFIXES, read_point_cloud
@@ -137,10 +137,7 @@ class ScanFolderPairs(PairDataset):
         half_extent: float | None = 1.0,
         seed: int = 0,
     ) -> None:
-        self.root = Path(root).expanduser()
-        if not self.root.is_dir():
-            raise FileNotFoundError(f"scan folder not found: {self.root}")
-        self.root = self.root.resolve()
+        self.root = existing_folder(root, "scan folder")
         if part not in PARTS:
             raise ValueError(f"part must be one of {PARTS}, got {part!r}")
         if frame_gap < 1 or copies < 1 or source_motion_deg < 0:

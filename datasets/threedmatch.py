@@ -19,7 +19,7 @@ from typing import Any
 
 import numpy as np
 
-from linereg.datasets.base import DATASETS, PairDataset, item_rng
+from linereg.datasets.base import DATASETS, PairDataset, existing_folder, item_rng
 from linereg.datasets.formats import read_log, read_overlap_log
 from linereg.datasets.fragments import overlap_ratio
 from linereg.datasets.scan_pairs import ScanSettings, finish_scan_pair
@@ -52,6 +52,7 @@ def _find_gt_log(scene: Path) -> Path:
     )
 
 
+@DATASETS.register("threedmatch")
 class ThreeDMatchPairs(PairDataset):
     """Fragment pairs of one 3DMatch scene.
 
@@ -63,9 +64,8 @@ class ThreeDMatchPairs(PairDataset):
         max_overlap: keep pairs with overlap ratio ``<= max_overlap`` (3DLoMatch: 0.3).
         skip_missing: drop pairs whose fragment files are absent instead of failing.
         compute_overlap: measure the overlap of pairs without a ``gt_overlap.log`` ratio.
-        num_points: points per cloud after FPS (``None`` keeps all).
-        dense_points: random cap before normal estimation.
-        half_extent: scale pairs into ``[-half_extent, half_extent]^3`` (``None``: metres).
+        num_points, dense_points, half_extent: how each fragment pair is sampled and scaled
+            (:class:`~linereg.datasets.scan_pairs.ScanSettings`; ``half_extent=None`` keeps metres).
         seed: base seed.
     """
 
@@ -81,15 +81,12 @@ class ThreeDMatchPairs(PairDataset):
         max_overlap: float | None = None,
         skip_missing: bool = False,
         compute_overlap: bool = False,
-        num_points: int | None = 2048,
-        dense_points: int | None = 20000,
-        half_extent: float | None = 5.0,
+        num_points: int | None = ScanSettings.num_points,
+        dense_points: int | None = ScanSettings.dense_points,
+        half_extent: float | None = ScanSettings.half_extent,
         seed: int = 0,
     ) -> None:
-        self.root = Path(root).expanduser()
-        if not self.root.is_dir():
-            raise FileNotFoundError(f"3DMatch scene folder not found: {self.root}")
-        self.root = self.root.resolve()
+        self.root = existing_folder(root, "3DMatch scene folder")
         self.gt_log = Path(gt_log).resolve() if gt_log is not None else _find_gt_log(self.root)
         entries = read_log(self.gt_log)
         if overlap_log is None and (self.gt_log.parent / "gt_overlap.log").is_file():
@@ -173,34 +170,3 @@ class ThreeDMatchPairs(PairDataset):
             "scan": vars(self.scan),
             "seed": self.seed,
         }
-
-
-@DATASETS.register("threedmatch")
-def build_threedmatch(
-    *,
-    root: str,
-    gt_log: str | None = None,
-    overlap_log: str | None = None,
-    min_overlap: float | None = None,
-    max_overlap: float | None = None,
-    skip_missing: bool = False,
-    compute_overlap: bool = False,
-    num_points: int | None = 2048,
-    dense_points: int | None = 20000,
-    half_extent: float | None = 5.0,
-    seed: int = 0,
-) -> ThreeDMatchPairs:
-    """3DMatch fragment pairs (see :class:`ThreeDMatchPairs`)."""
-    return ThreeDMatchPairs(
-        root,
-        gt_log=gt_log,
-        overlap_log=overlap_log,
-        min_overlap=min_overlap,
-        max_overlap=max_overlap,
-        skip_missing=skip_missing,
-        compute_overlap=compute_overlap,
-        num_points=num_points,
-        dense_points=dense_points,
-        half_extent=half_extent,
-        seed=seed,
-    )

@@ -10,8 +10,9 @@ from :func:`linereg.losses.line_neighbors.cloud_neighborhoods`.
 Candidate search, without ever testing all point-line pairs:
 
 * every point ``p`` with radius ``r_p`` is inserted into each cell of a uniform grid that its
-  ball ``B(p, r_p)`` overlaps (a "dilated" grid, built once per call in ``O(N)``); one grid holds
-  both clouds of a sample (source and target share their lines), so each line is walked once;
+  ball ``B(p, r_p)`` overlaps (a "dilated" grid, built once per call in ``O(N)``:
+  :mod:`linereg.losses.line_grid`); one grid holds both clouds of a sample (source and target
+  share their lines), so each line is walked once;
 * each line walks the cells it crosses (3D-DDA, Amanatides & Woo 1987; each axis steps exactly
   the cells between the line's entry and exit cells) and tests the points stored there. If
   ``dist(p, line) < r_p``, the foot of the perpendicular ``q`` lies in ``B(p, r_p)``, so the cell
@@ -41,6 +42,8 @@ import os
 import numba
 import numpy as np
 
+from .line_grid import sample_grids
+
 if "NUMBA_THREADING_LAYER" not in os.environ and "NUMBA_THREADING_LAYER_PRIORITY" not in os.environ:
     # Try OpenMP first: numba's default tries TBB first and warns when a library loaded earlier
     # (Open3D ships one) is too old for it.
@@ -50,119 +53,6 @@ MODE_CANDIDATES = 0  # Insec1: every candidate point is an intersection
 MODE_CONVEX = 1  # paper Eq. (7): candidates whose k nearest neighbours are candidates too
 MODE_TRIPLET = 2  # authors' code: the point and its k neighbours all within the anchor's radius
 MODE_PIERCE = 3  # as MODE_CONVEX, but the weights locate where the line pierces the triangle
-
-_GRID_CELL_CAP_PER_POINT = 8
-_MIN_GRID_CELLS = 4096
-
-
-@numba.njit(cache=True)
-def grid_cell_size(points, radius, cell_factor, n_points):
-    """Cell edge of the dilated grid over ``points (P, 3)`` (one sample's clouds together):
-    ``cell_factor * (n_points / 1024)^(1/6)`` times the median radius, bounded so the grid has at
-    most ``max(4096, 8 P)`` cells (memory linear in ``P``); ``n_points`` is the size of one cloud.
-
-    The growth with ``n_points`` balances the two costs of a line: cells crossed (``~ 1 / cell``)
-    and points tested (``~ N * cell^2`` on a surface), whose optimum is ``cell ~ N^(-1/3)``, while
-    the radius shrinks as ``N^(-1/2)`` (``scripts/bench_loss.py`` shows the effect).
-    """
-    volume = 1.0
-    longest = 0.0
-    for a in range(3):
-        extent = points[:, a].max() - points[:, a].min() + 2.0 * radius.max()
-        volume *= max(extent, 1e-300)
-        longest = max(longest, extent)
-    cap = max(_MIN_GRID_CELLS, _GRID_CELL_CAP_PER_POINT * points.shape[0])
-    floor = max((volume / cap) ** (1.0 / 3.0), longest / 1024.0)
-    factor = cell_factor * (n_points / 1024.0) ** (1.0 / 6.0)
-    return max(factor * np.median(radius), floor, np.finfo(np.float64).tiny)
-
-
-@numba.njit(cache=True)
-def sample_cell_sizes(points, point_offsets, radius, n_samples, cell_factor):
-    """``(B,)`` :func:`grid_cell_size` of every sample, its clouds (``G`` sides, side-major as in
-    :func:`line_intersections`) together; ``n_points`` is the mean size of its clouds."""
-    n_sides = (point_offsets.shape[0] - 1) // n_samples
-    cells = np.empty(n_samples)
-    for b in range(n_samples):
-        size = 0
-        for g in range(n_sides):
-            size += point_offsets[g * n_samples + b + 1] - point_offsets[g * n_samples + b]
-        sample_points = np.empty((size, 3))
-        sample_radius = np.empty(size)
-        row = 0
-        for g in range(n_sides):
-            for i in range(point_offsets[g * n_samples + b], point_offsets[g * n_samples + b + 1]):
-                sample_points[row] = points[i]
-                sample_radius[row] = radius[i]
-                row += 1
-        cells[b] = grid_cell_size(sample_points, sample_radius, cell_factor, size / n_sides)
-    return cells
-
-
-@numba.njit(cache=True, inline="always")
-def _ball_cells(points, radius, i, grid_min, dims, cell):
-    """Cell index range ``lo_x, hi_x, lo_y, hi_y, lo_z, hi_z`` (inclusive) overlapped by the
-    bounding box of ``B(points[i], radius[i])``."""
-    r = radius[i]
-    lx = min(dims[0] - 1, max(0, int((points[i, 0] - r - grid_min[0]) / cell)))
-    hx = min(dims[0] - 1, max(0, int((points[i, 0] + r - grid_min[0]) / cell)))
-    ly = min(dims[1] - 1, max(0, int((points[i, 1] - r - grid_min[1]) / cell)))
-    hy = min(dims[1] - 1, max(0, int((points[i, 1] + r - grid_min[1]) / cell)))
-    lz = min(dims[2] - 1, max(0, int((points[i, 2] - r - grid_min[2]) / cell)))
-    hz = min(dims[2] - 1, max(0, int((points[i, 2] + r - grid_min[2]) / cell)))
-    return lx, hx, ly, hy, lz, hz
-
-
-@numba.njit(cache=True)
-def build_dilated_grid(points, radius, starts, stops, cell):
-    """CSR grid over the rows ``starts[g]:stops[g]`` of ``points`` (the clouds of one sample):
-    cell ``c`` holds entries ``cell_start[c]:cell_start[c+1]``, each a copy of a point whose
-    ``radius``-ball overlaps the cell, in cloud order then row order.
-
-    Returns ``(grid_min (3,), dims (3,) int64, cell_start (C+1,), entry_rows (S,) int64,
-    entry_xyzr (4, S))``: the row of each entry in ``points`` and its coordinates and squared
-    radius (one row each), stored in cell order so that a line walk reads memory sequentially.
-    """
-    grid_min = np.full(3, np.inf)
-    grid_max = np.full(3, -np.inf)
-    r_max = 0.0
-    for g in range(starts.shape[0]):
-        for i in range(starts[g], stops[g]):
-            r_max = max(r_max, radius[i])
-            for a in range(3):
-                grid_min[a] = min(grid_min[a], points[i, a])
-                grid_max[a] = max(grid_max[a], points[i, a])
-    dims = np.empty(3, dtype=np.int64)
-    for a in range(3):
-        grid_min[a] -= r_max
-        dims[a] = max(1, math.ceil((grid_max[a] + r_max - grid_min[a]) / cell))
-    counts = np.zeros(dims[0] * dims[1] * dims[2] + 1, dtype=np.int64)
-    for g in range(starts.shape[0]):
-        for i in range(starts[g], stops[g]):
-            lx, hx, ly, hy, lz, hz = _ball_cells(points, radius, i, grid_min, dims, cell)
-            for x in range(lx, hx + 1):
-                for y in range(ly, hy + 1):
-                    for z in range(lz, hz + 1):
-                        counts[(x * dims[1] + y) * dims[2] + z + 1] += 1
-    cell_start = np.cumsum(counts)
-    fill = cell_start[:-1].copy()
-    entry_rows = np.empty(cell_start[-1], dtype=np.int64)
-    entry_xyzr = np.empty((4, cell_start[-1]))
-    for g in range(starts.shape[0]):
-        for i in range(starts[g], stops[g]):
-            lx, hx, ly, hy, lz, hz = _ball_cells(points, radius, i, grid_min, dims, cell)
-            for x in range(lx, hx + 1):
-                for y in range(ly, hy + 1):
-                    for z in range(lz, hz + 1):
-                        c = (x * dims[1] + y) * dims[2] + z
-                        s = fill[c]
-                        fill[c] = s + 1
-                        entry_rows[s] = i
-                        entry_xyzr[0, s] = points[i, 0]
-                        entry_xyzr[1, s] = points[i, 1]
-                        entry_xyzr[2, s] = points[i, 2]
-                        entry_xyzr[3, s] = radius[i] * radius[i]
-    return grid_min, dims, cell_start, entry_rows, entry_xyzr
 
 
 @numba.njit(cache=True, inline="always")
@@ -307,34 +197,16 @@ def _collect_candidates(ox, oy, oz, ux, uy, uz, eps2, grid_min, dims, cell, cell
 
 
 @numba.njit(cache=True)
-def _scan_lines(
-    sample,
-    first,
-    stop,
-    origins,
-    dirs,
-    points,
-    point_offsets,
-    radius,
-    neighbors,
-    mode,
-    eps2,
-    cell,
-    grid,
-    counts,
-    count_lines,
-    out_anchor,
-    out_weight,
-    out_row,
-    out_stop,
-):
+def _scan_lines(batch, sample, first, stop, cell, grid, counts, count_lines, out_anchor, out_weight, out_row, out_stop):
     """Intersections of lines ``first:stop`` of sample ``sample`` with each of its clouds.
 
-    Each line walks the sample's grid once (all its clouds together); the intersections of line
-    ``l`` with side ``g`` are written from ``out_row[g]`` on (rows below ``out_stop[g]`` only; the
-    others are only counted) and, if ``count_lines``, counted in ``counts[g * L + l]``. Returns
-    the ``(G,)`` totals.
+    ``batch`` is ``(origins, dirs, points, point_offsets, radius, neighbors, mode, eps2)``, the
+    arguments of :func:`line_intersections`. Each line walks the sample's grid once (all its clouds
+    together); the intersections of line ``l`` with side ``g`` are written from ``out_row[g]`` on
+    (rows below ``out_stop[g]`` only; the others are only counted) and, if ``count_lines``,
+    counted in ``counts[g * L + l]``. Returns the ``(G,)`` totals.
     """
+    origins, dirs, points, point_offsets, radius, neighbors, mode, eps2 = batch
     grid_min, dims, cell_start, entry_rows, entry_xyzr = grid
     n_sides = out_row.shape[0]
     n_samples = (point_offsets.shape[0] - 1) // n_sides
@@ -428,22 +300,6 @@ def int_zeros(shape):
     return np.zeros(shape, dtype=np.int64)
 
 
-@numba.njit(cache=True)
-def _sample_grids(points, point_offsets, radius, cells):
-    """The dilated grid of every sample (its clouds together), as a list."""
-    n_samples = cells.shape[0]
-    n_sides = (point_offsets.shape[0] - 1) // n_samples
-    grids = []
-    for b in range(n_samples):
-        starts = np.empty(n_sides, dtype=np.int64)
-        stops = np.empty(n_sides, dtype=np.int64)
-        for g in range(n_sides):
-            starts[g] = point_offsets[g * n_samples + b]
-            stops[g] = point_offsets[g * n_samples + b + 1]
-        grids.append(build_dilated_grid(points, radius, starts, stops, cells[b]))
-    return grids
-
-
 @numba.njit(cache=True, parallel=True)
 def line_intersections(origins, dirs, line_offsets, points, point_offsets, radius, neighbors, mode, eps2, cells, chunk):
     """All intersections of lines with clouds, for a whole batch at once.
@@ -479,7 +335,8 @@ def line_intersections(origins, dirs, line_offsets, points, point_offsets, radiu
     n_sides = (point_offsets.shape[0] - 1) // n_samples
     n_lines = origins.shape[0]
     k = neighbors.shape[1]
-    grids = _sample_grids(points, point_offsets, radius, cells)
+    grids = sample_grids(points, point_offsets, radius, cells)
+    batch = (origins, dirs, points, point_offsets, radius, neighbors, mode, eps2)
     items_per_sample = np.empty(n_samples, dtype=np.int64)
     for b in range(n_samples):
         items_per_sample[b] = (line_offsets[b + 1] - line_offsets[b] + chunk - 1) // chunk
@@ -511,26 +368,9 @@ def line_intersections(origins, dirs, line_offsets, points, point_offsets, radiu
             rows[g] = g * room + buffer_start[item]
             stops[g] = g * room + buffer_start[item + 1]
         b = item_sample[item]
+        first, stop = item_first[item], item_stop[item]
         item_total[item] = _scan_lines(
-            b,
-            item_first[item],
-            item_stop[item],
-            origins,
-            dirs,
-            points,
-            point_offsets,
-            radius,
-            neighbors,
-            mode,
-            eps2,
-            cells[b],
-            grids[b],
-            counts,
-            True,
-            buffer_anchor,
-            buffer_weight,
-            rows,
-            stops,
+            batch, b, first, stop, cells[b], grids[b], counts, True, buffer_anchor, buffer_weight, rows, stops
         )
     offsets = np.empty(n_sides * n_lines + 1, dtype=np.int64)
     offsets[0] = 0
@@ -554,25 +394,6 @@ def line_intersections(origins, dirs, line_offsets, points, point_offsets, radiu
             for g in range(n_sides):
                 rows[g] = offsets[g * n_lines + first]
             b = item_sample[item]
-            _scan_lines(
-                b,
-                first,
-                stop,
-                origins,
-                dirs,
-                points,
-                point_offsets,
-                radius,
-                neighbors,
-                mode,
-                eps2,
-                cells[b],
-                grids[b],
-                counts,
-                False,
-                anchors,
-                weights,
-                rows,
-                rows + item_total[item],
-            )
+            stops = rows + item_total[item]
+            _scan_lines(batch, b, first, stop, cells[b], grids[b], counts, False, anchors, weights, rows, stops)
     return offsets, anchors, weights

@@ -19,7 +19,7 @@ import torch
 
 from linereg.knn import knn_points
 
-from . import line_kernels, line_torch, line_welsch_kernels
+from . import line_grid, line_kernels, line_torch, line_welsch_kernels
 from .line_neighbors import cloud_neighborhoods
 from .line_options import INTERSECTIONS, LineMetricOptions
 from .line_torch import Hits
@@ -162,7 +162,7 @@ def numba_plan(src, tgt, src_lengths, tgt_lengths, lines: LineBatch, options) ->
     )
     if mode == line_kernels.MODE_CANDIDATES:
         neighbors = np.empty((len(points), 0), dtype=np.int64)
-    cells = line_kernels.sample_cell_sizes(points, point_offsets, radius, batch, options.cell_factor)
+    cells = line_grid.sample_cell_sizes(points, point_offsets, radius, batch, options.cell_factor)
     counts = lines.counts
     origins, dirs = lines.origins.cpu().numpy(), lines.dirs.cpu().numpy()
     if (counts == n_lines).all():

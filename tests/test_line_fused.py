@@ -11,7 +11,7 @@ import pytest
 import torch
 
 from linereg.knn import knn_distances, knn_points
-from linereg.losses import line_kernels
+from linereg.losses import line_grid
 from linereg.losses.line_intersection import LineMetricOptions, _checked_inputs
 from linereg.losses.line_neighbors import cloud_neighborhoods
 from linereg.losses.line_pairs import line_pairs, numba_plan, resolve_lines, stacked_points, torch_setups
@@ -178,9 +178,9 @@ def test_cell_sizes_of_a_batch_are_those_of_each_sample_alone():
     clouds = [rng.normal(size=(n, 3)) * scale for n, scale in ((50, 1.0), (80, 3.0), (60, 1.0), (40, 3.0))]
     radius = [rng.uniform(0.05, 0.2, len(c)) for c in clouds]
     offsets = np.concatenate([[0], np.cumsum([len(c) for c in clouds])])
-    cells = line_kernels.sample_cell_sizes(np.concatenate(clouds), offsets, np.concatenate(radius), 2, 4.0)
+    cells = line_grid.sample_cell_sizes(np.concatenate(clouds), offsets, np.concatenate(radius), 2, 4.0)
     for b in range(2):  # sample b: clouds b (source) and 2 + b (target)
-        alone = line_kernels.grid_cell_size(
+        alone = line_grid.grid_cell_size(
             np.concatenate([clouds[b], clouds[2 + b]]),
             np.concatenate([radius[b], radius[2 + b]]),
             4.0,

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import torch
 
-from linereg.losses import line_kernels, lines
+from linereg.losses import line_grid, line_kernels, lines
 from tests.test_line_intersection import blob, lines_for
 
 
@@ -57,7 +57,7 @@ def test_grid_walk_finds_exactly_the_all_pairs_intersections(mode, cell_factor):
     for b in range(2):
         sample_points = np.concatenate([points[b], points[2 + b]])
         sample_radius = np.concatenate([radius[b], radius[2 + b]])
-        cells.append(line_kernels.grid_cell_size(sample_points, sample_radius, cell_factor, len(sample_points) / 2))
+        cells.append(line_grid.grid_cell_size(sample_points, sample_radius, cell_factor, len(sample_points) / 2))
     offsets, anchors, weights = line_kernels.line_intersections(
         np.concatenate([o for o, _ in line_sets]),
         np.concatenate([d for _, d in line_sets]),

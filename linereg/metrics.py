@@ -14,7 +14,7 @@ l2 pointwise error is below ``alpha``.
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 
 import numpy as np
 import torch
@@ -217,6 +217,16 @@ def aggregate_errors(
     return values
 
 
+def markdown_table(header: Sequence[str], rows: Iterable[Sequence[str]]) -> list[str]:
+    """Markdown lines of a table: ``| header |``, the separator ``|---|...`` and one line per row of
+    formatted cells."""
+    return [
+        "| " + " | ".join(header) + " |",
+        "|" + "---|" * len(header),
+        *("| " + " | ".join(row) + " |" for row in rows),
+    ]
+
+
 def paper_table(rows: Mapping[str, Mapping[str, float]], stat: str = "mean") -> str:
     """A markdown table in the layout of the paper's tables, from :func:`summarize` outputs.
 
@@ -234,17 +244,26 @@ def paper_table(rows: Mapping[str, Mapping[str, float]], stat: str = "mean") -> 
     """
     if stat not in ("mean", "median"):
         raise ValueError(f"stat must be 'mean' or 'median', got {stat!r}")
-    lines = [
-        "| Method | Err_R (deg) | Err_t (x10^-1) (l1, l2) | Err_pw (x10^-1) (l1, l2) |",
-        "|---|---|---|---|",
-    ]
+    cells = []
     for method, summary in rows.items():
         missing = [f"{key}_{stat}" for key in ERROR_KEYS if f"{key}_{stat}" not in summary]
         if missing:
             raise KeyError(f"summary of {method!r} lacks {', '.join(missing)}")
-        lines.append(
-            f"| {method} | {summary[f'err_r_deg_{stat}']:.3f} "
-            f"| {10 * summary[f'err_t_l1_{stat}']:.3f}, {10 * summary[f'err_t_l2_{stat}']:.3f} "
-            f"| {10 * summary[f'err_pw_l1_{stat}']:.3f}, {10 * summary[f'err_pw_l2_{stat}']:.3f} |"
+        cells.append(
+            [
+                method,
+                f"{summary[f'err_r_deg_{stat}']:.3f}",
+                f"{10 * summary[f'err_t_l1_{stat}']:.3f}, {10 * summary[f'err_t_l2_{stat}']:.3f}",
+                f"{10 * summary[f'err_pw_l1_{stat}']:.3f}, {10 * summary[f'err_pw_l2_{stat}']:.3f}",
+            ]
         )
-    return "\n".join(lines)
+    header = ["Method", "Err_R (deg)", "Err_t (x10^-1) (l1, l2)", "Err_pw (x10^-1) (l1, l2)"]
+    return "\n".join(markdown_table(header, cells))
+
+
+def alpha_recall_table(rows: Mapping[str, Mapping[str, float]], alphas: Sequence[float]) -> list[str]:
+    """Markdown lines: each method's alpha-recall (``recall@<alpha>`` of :func:`aggregate_errors`) at
+    every alpha, three decimals."""
+    header = ["Method", *(f"alpha={alpha:g}" for alpha in alphas)]
+    cells = ([method, *(f"{summary[f'recall@{alpha:g}']:.3f}" for alpha in alphas)] for method, summary in rows.items())
+    return markdown_table(header, cells)

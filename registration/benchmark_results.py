@@ -46,6 +46,7 @@ from linereg.metrics import (
     SUCCESS_THRESHOLDS_DEG,
     aggregate_errors,
     alpha_recall,
+    markdown_table,
     paper_table,
     rotation_error_deg,
 )
@@ -177,21 +178,34 @@ def recall_table(summary: Mapping[str, Mapping[str, float]], units: str) -> list
         summary: :func:`summarize_records` output.
         units: the pairs' length unit, named in the header (e.g. ``"m"``).
     """
-    recalls = " | ".join(f"recall (RRE <= {deg:g} deg, RTE <= {t:g} {units})" for deg, t in RECALL_THRESHOLDS)
-    lines = [
-        f"| Method | pairs | {recalls} | RRE mean (deg) | RRE median (deg) | RTE mean ({units}) "
-        f"| RTE median ({units}) | RRE mean, registered (deg) | RTE mean, registered ({units}) | time mean (s) |",
-        "|---|---|" + "---|" * (len(RECALL_THRESHOLDS) + 7),
+    header = [
+        "Method",
+        "pairs",
+        *(f"recall (RRE <= {deg:g} deg, RTE <= {t:g} {units})" for deg, t in RECALL_THRESHOLDS),
+        "RRE mean (deg)",
+        "RRE median (deg)",
+        f"RTE mean ({units})",
+        f"RTE median ({units})",
+        "RRE mean, registered (deg)",
+        f"RTE mean, registered ({units})",
+        "time mean (s)",
     ]
-    for method, stats in summary.items():
-        values = " | ".join(f"{stats[recall_key(*thresholds)]:.3f}" for thresholds in RECALL_THRESHOLDS)
-        lines.append(
-            f"| {method} | {stats['pairs']} | {values} | {stats['err_r_deg_mean']:.2f} "
-            f"| {stats['err_r_deg_median']:.2f} | {stats['err_t_l2_mean']:.3f} | {stats['err_t_l2_median']:.3f} "
-            f"| {stats['err_r_deg_registered_mean']:.2f} | {stats['err_t_l2_registered_mean']:.3f} "
-            f"| {stats['seconds_mean']:.2f} |"
-        )
-    return lines
+    rows = [
+        [
+            method,
+            f"{stats['pairs']}",
+            *(f"{stats[recall_key(*thresholds)]:.3f}" for thresholds in RECALL_THRESHOLDS),
+            f"{stats['err_r_deg_mean']:.2f}",
+            f"{stats['err_r_deg_median']:.2f}",
+            f"{stats['err_t_l2_mean']:.3f}",
+            f"{stats['err_t_l2_median']:.3f}",
+            f"{stats['err_r_deg_registered_mean']:.2f}",
+            f"{stats['err_t_l2_registered_mean']:.3f}",
+            f"{stats['seconds_mean']:.2f}",
+        ]
+        for method, stats in summary.items()
+    ]
+    return markdown_table(header, rows)
 
 
 def recall_sections(records: Sequence[Mapping[str, Any]], units: str) -> list[str]:
@@ -268,17 +282,15 @@ def confidence_lines(records: Sequence[Mapping[str, Any]], default_source: str) 
     unflagged = [record["pair"] for record in records if "confident" not in record]
     if unflagged:
         raise ValueError(f"records of pairs {unflagged[:5]} have no 'confident' flag; run the benchmark again")
-    header = ["| Rows | records | TP | FP | FN | TN | precision | recall |", "|---|---|---|---|---|---|---|---|"]
+    header = ["Rows", "records", "TP", "FP", "FN", "TN", "precision", "recall"]
 
     def table(groups: Mapping[str, Sequence[Mapping[str, Any]]]) -> list[str]:
         rows = []
         for name, members in groups.items():
             c = confusion(members)
-            rows.append(
-                f"| {name} | {len(members)} | {c['tp']} | {c['fp']} | {c['fn']} | {c['tn']} "
-                f"| {c['precision']:.3f} | {c['recall']:.3f} |"
-            )
-        return header + rows
+            counts = [f"{c[key]}" for key in ("tp", "fp", "fn", "tn")]
+            rows.append([name, f"{len(members)}", *counts, f"{c['precision']:.3f}", f"{c['recall']:.3f}"])
+        return markdown_table(header, rows)
 
     by_source: dict[str, list[Mapping[str, Any]]] = {}
     for record in records:
@@ -392,14 +404,21 @@ def markdown_tables(summary: Mapping[str, Mapping[str, float]]) -> str:
         "",
         "## Time per pair and success rates",
         "",
-        "| Method | pairs | time mean (s) | time median (s) | Err_R < 1 deg | Err_R < 5 deg |",
-        "|---|---|---|---|---|---|",
+        *markdown_table(
+            ["Method", "pairs", "time mean (s)", "time median (s)", "Err_R < 1 deg", "Err_R < 5 deg"],
+            (
+                [
+                    method,
+                    f"{stats['pairs']}",
+                    f"{stats['seconds_mean']:.3f}",
+                    f"{stats['seconds_median']:.3f}",
+                    f"{stats['success_1deg']:.2f}",
+                    f"{stats['success_5deg']:.2f}",
+                ]
+                for method, stats in summary.items()
+            ),
+        ),
     ]
-    for method, stats in summary.items():
-        lines.append(
-            f"| {method} | {stats['pairs']} | {stats['seconds_mean']:.3f} | {stats['seconds_median']:.3f} "
-            f"| {stats['success_1deg']:.2f} | {stats['success_5deg']:.2f} |"
-        )
     return "\n".join(lines) + "\n"
 
 

@@ -47,7 +47,14 @@ from tqdm.auto import tqdm
 from linereg.checkpoint import load_checkpoint
 from linereg.datasets.splits import build_split
 from linereg.losses import build_loss
-from linereg.metrics import ERROR_KEYS, aggregate_errors, paper_table, registration_errors
+from linereg.metrics import (
+    ERROR_KEYS,
+    aggregate_errors,
+    alpha_recall_table,
+    markdown_table,
+    paper_table,
+    registration_errors,
+)
 from linereg.models import load_model
 from linereg.pointcloud import scale_transform
 from linereg.registration.evaluation import INLIER_DISTANCES, Assessment, assess_registration
@@ -323,11 +330,6 @@ def report(name: str, evaluation: Evaluation, alphas: Sequence[float]) -> str:
         summary = f"{evaluation.num_pairs} pairs without ground truth: no registration errors{loss_text}."
         return "\n\n".join([summary, *check])
     summaries = {name: evaluation.metrics(alphas), IDENTITY: evaluation.metrics(alphas, identity=True)}
-    recall_header = "| Method | " + " | ".join(f"alpha={a:g}" for a in alphas) + " |"
-    recall_rows = [
-        f"| {row} | " + " | ".join(f"{summary[f'recall@{a:g}']:.3f}" for a in alphas) + " |"
-        for row, summary in summaries.items()
-    ]
     return "\n".join(
         [
             f"Registration errors on {evaluation.num_pairs} pairs (means):",
@@ -336,9 +338,7 @@ def report(name: str, evaluation: Evaluation, alphas: Sequence[float]) -> str:
             "",
             "Alpha-recall (fraction of pairs with Err_pw l2 < alpha):",
             "",
-            recall_header,
-            "|---|" + "---|" * len(alphas),
-            *recall_rows,
+            *alpha_recall_table(summaries, alphas),
             *("\n" + table for table in check),
         ]
     )
@@ -354,10 +354,17 @@ def _check_table(name: str, evaluation: Evaluation) -> str:
             f"Registration check of linereg.register on {count} pairs (means; inliers within "
             f"{INLIER_DISTANCES:g} sampling distances of the target):",
             "",
-            "| Method | Fitness | Inlier RMSE | Confident |",
-            "|---|---|---|---|",
-            f"| {name} | {means['fitness_mean']:.3f} | {means['inlier_rmse_mean']:.4g} "
-            f"| {means['confident_share']:.3f} ({confident}/{count}) |",
+            *markdown_table(
+                ["Method", "Fitness", "Inlier RMSE", "Confident"],
+                [
+                    [
+                        name,
+                        f"{means['fitness_mean']:.3f}",
+                        f"{means['inlier_rmse_mean']:.4g}",
+                        f"{means['confident_share']:.3f} ({confident}/{count})",
+                    ]
+                ],
+            ),
         ]
     )
 

@@ -2,12 +2,26 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable, Sequence
 from pathlib import Path
 
 import pytest
 import torch
+from hydra import compose, initialize_config_dir
+from omegaconf import DictConfig
 
 from linereg.paths import shared_data_dir
+
+CONFIGS = Path(__file__).resolve().parent.parent / "configs"
+
+
+def compose_config(
+    name: str, overrides: Sequence[str] = (), *, config_dir: Path = CONFIGS, hydra: bool = False
+) -> DictConfig:
+    """``configs/<name>.yaml`` (or ``<config_dir>/<name>.yaml``) composed with ``overrides``, outside
+    any Hydra run, as its command composes it; ``hydra=True`` keeps the ``hydra`` node."""
+    with initialize_config_dir(str(config_dir), version_base="1.3"):
+        return compose(name, overrides=[*overrides], return_hydra_config=hydra)
 
 
 @pytest.fixture(scope="session")
@@ -26,3 +40,9 @@ def one_torch_thread():
     torch.set_num_threads(1)
     yield
     torch.set_num_threads(threads)
+
+
+@pytest.fixture(scope="session")
+def hydra_compose() -> Callable[..., DictConfig]:
+    """:func:`compose_config`: ``hydra_compose("train", ["experiment=rpm_ours"])``."""
+    return compose_config

@@ -7,7 +7,6 @@ from pathlib import Path
 
 import pytest
 import torch
-from hydra import compose, initialize_config_dir
 from hydra.errors import ConfigCompositionException
 from omegaconf import OmegaConf, open_dict
 
@@ -17,6 +16,7 @@ from linereg.models import MODELS
 from linereg.train.curriculum import Curriculum
 from linereg.train.loop import TrainerSettings
 from linereg.train.optim import OPTIMIZERS, SCHEDULERS
+from tests.conftest import compose_config as shared_compose
 
 ROOT = Path(__file__).resolve().parent.parent
 CONFIGS = ROOT / "configs"
@@ -25,9 +25,8 @@ PATHS = [f"paths.root_dir={ROOT}", "paths.output_dir=/tmp/linereg-config-test"]
 
 
 def compose_config(name: str = "train", overrides: list[str] | None = None):
-    """Compose ``configs/<name>.yaml`` with overrides (outside any Hydra run)."""
-    with initialize_config_dir(str(CONFIGS), version_base="1.3"):
-        return compose(name, overrides=[*PATHS, *(overrides or [])])
+    """Compose ``configs/<name>.yaml`` with :data:`PATHS` and overrides (outside any Hydra run)."""
+    return shared_compose(name, [*PATHS, *(overrides or [])])
 
 
 def build_components(cfg) -> None:
@@ -269,9 +268,8 @@ def test_optimizer_with_unknown_argument():
         OPTIMIZERS.build({"name": "adagrad", "lr": 1e-3}, [torch.nn.Parameter(torch.zeros(1))])
 
 
-def test_hydra_sweep_folder_names_are_readable():
-    with initialize_config_dir(str(CONFIGS), version_base="1.3"):
-        full = compose("train", overrides=PATHS, return_hydra_config=True)
+def test_hydra_sweep_folder_names_are_readable(hydra_compose):
+    full = hydra_compose("train", PATHS, hydra=True)
     sweep = OmegaConf.to_container(full.hydra.sweep, resolve=False)
     assert sweep["subdir"] == "${hydra.job.num}_${hydra.job.override_dirname}"
     assert full.hydra.job.config.override_dirname.kv_sep == "="
@@ -279,9 +277,8 @@ def test_hydra_sweep_folder_names_are_readable():
 
 
 @pytest.mark.skipif(importlib.util.find_spec("hydra_plugins.hydra_optuna_sweeper") is None, reason="no optuna sweeper")
-def test_optuna_search_composes():
-    with initialize_config_dir(str(CONFIGS), version_base="1.3"):
-        cfg = compose("train", overrides=[*PATHS, "hparams_search=optuna"], return_hydra_config=True)
+def test_optuna_search_composes(hydra_compose):
+    cfg = hydra_compose("train", [*PATHS, "hparams_search=optuna"], hydra=True)
     assert cfg.hydra.sweeper.params["loss.nu0"] == "interval(0.1, 2.0)"
     assert cfg.optimized_metric == "val/err_r_deg_mean"
 
@@ -289,9 +286,8 @@ def test_optuna_search_composes():
 @pytest.mark.skipif(
     importlib.util.find_spec("hydra_plugins.hydra_submitit_launcher") is None, reason="no submitit launcher"
 )
-def test_slurm_launcher_composes():
-    with initialize_config_dir(str(CONFIGS), version_base="1.3"):
-        cfg = compose("train", overrides=[*PATHS, "launcher=slurm"], return_hydra_config=True)
+def test_slurm_launcher_composes(hydra_compose):
+    cfg = hydra_compose("train", [*PATHS, "launcher=slurm"], hydra=True)
     assert cfg.hydra.launcher.tasks_per_node == 1
     assert "submitit" in cfg.hydra.launcher._target_
 

@@ -9,7 +9,6 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from hydra import compose, initialize_config_dir
 from torch import nn
 
 from linereg.checkpoint import find_checkpoint, load_checkpoint
@@ -21,13 +20,13 @@ from linereg.structures import PairBatch, RegistrationOutput
 from linereg.train import distributed, loop
 from linereg.train.evaluate import Evaluation, evaluate, evaluate_model, report
 from linereg.train.figures import plot_registration, registration_figure
+from tests.conftest import compose_config
 
 ROOT = Path(__file__).resolve().parent.parent
 
 
 def _compose(name: str, overrides: list[str]):
-    with initialize_config_dir(str(ROOT / "configs"), version_base="1.3"):
-        return compose(name, overrides=[f"paths.root_dir={ROOT}", *overrides])
+    return compose_config(name, [f"paths.root_dir={ROOT}", *overrides])
 
 
 @pytest.fixture(scope="module")

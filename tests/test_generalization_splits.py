@@ -8,11 +8,11 @@ import math
 from pathlib import Path
 
 import pytest
-from hydra import compose, initialize_config_dir
 
 from linereg.datasets.splits import build_split
 from linereg.registry import plain
 from linereg.train.evaluate import evaluate
+from tests.conftest import compose_config
 from tests.pair_identities import pair_identities
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -30,8 +30,7 @@ pytestmark = pytest.mark.shared_data
 
 
 def _compose(name: str, overrides: list[str]):
-    with initialize_config_dir(str(ROOT / "configs"), version_base="1.3"):
-        return compose(name, overrides=[f"paths.root_dir={ROOT}", *overrides])
+    return compose_config(name, [f"paths.root_dir={ROOT}", *overrides])
 
 
 def _split(split: str):

@@ -12,10 +12,10 @@ import shlex
 from pathlib import Path
 
 import pytest
-from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 
 from linereg.train.curriculum import Curriculum
+from tests.conftest import compose_config
 
 ROOT = Path(__file__).resolve().parent.parent
 PATHS = [f"paths.root_dir={ROOT}", "paths.output_dir=/tmp/linereg-paper-scale-test"]
@@ -40,8 +40,7 @@ def _commands(page: Path, marker: str) -> list[list[str]]:
 
 
 def _compose(overrides: list[str], *, hydra: bool = False):
-    with initialize_config_dir(str(ROOT / "configs"), version_base="1.3"):
-        return compose("train", overrides=[*PATHS, *overrides], return_hydra_config=hydra)
+    return compose_config("train", [*PATHS, *overrides], hydra=hydra)
 
 
 def _overrides(command: list[str]) -> list[str]:

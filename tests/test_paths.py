@@ -8,7 +8,6 @@ import sys
 from pathlib import Path
 
 import pytest
-from hydra import compose, initialize_config_dir
 
 from linereg import paths
 from linereg.paths import DATA, SHARED_DATA, data_folder_places, shared_data_dir
@@ -62,9 +61,8 @@ def test_an_installed_package_reads_relative_folders_from_the_current_folder(che
     assert data_folder_places(*DATA) == [tmp_path / "outside" / "run" / "data"]
 
 
-def test_the_configs_resolve_the_data_folders_from_another_folder(checkout, tmp_path):
-    with initialize_config_dir(str(CONFIGS), version_base="1.3"):
-        cfg = compose("train", overrides=[f"paths.root_dir={Path.cwd()}", "protocol=human"])
+def test_the_configs_resolve_the_data_folders_from_another_folder(checkout, tmp_path, hydra_compose):
+    cfg = hydra_compose("train", [f"paths.root_dir={Path.cwd()}", "protocol=human"], config_dir=CONFIGS)
     assert cfg.paths.shared_data_dir == str(tmp_path / "shared" / "data")
     assert cfg.dataset.root == str(tmp_path / "shared" / "data" / "meshes" / "odedstein" / "human")
     assert cfg.paths.data_dir == str(checkout / "data")  # absent: where it belongs, named by the dataset's error

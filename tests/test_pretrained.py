@@ -11,7 +11,6 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from hydra import compose, initialize_config_dir
 
 import linereg
 from linereg import pretrained
@@ -19,14 +18,14 @@ from linereg.checkpoint import find_checkpoint, load_checkpoint
 from linereg.models import load_model
 from linereg.train import loop
 from linereg.train.evaluate import evaluate
+from tests.conftest import compose_config
 
 ROOT = Path(__file__).resolve().parent.parent
 SHIPPED = {f"rpm_{loss}_{protocol}" for loss in ("gt", "cd", "ours") for protocol in ("airplane", "human", "real")}
 
 
 def _compose(name: str, overrides: list[str]):
-    with initialize_config_dir(str(ROOT / "configs"), version_base="1.3"):
-        return compose(name, overrides=[f"paths.root_dir={ROOT}", *overrides])
+    return compose_config(name, [f"paths.root_dir={ROOT}", *overrides])
 
 
 def test_every_recipe_cell_of_rpm_net_ships_with_its_record():

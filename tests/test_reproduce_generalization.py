@@ -8,8 +8,6 @@ import re
 import subprocess
 from pathlib import Path
 
-from hydra import compose, initialize_config_dir
-
 from linereg import pretrained
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -30,7 +28,7 @@ def _parts(folder: str) -> tuple[str, str, str, str]:
     return parts[1], parts[2] if len(parts) == 4 else "", name, seed
 
 
-def test_every_fold_and_seed_of_every_step_is_a_cell_command_with_a_dataset():
+def test_every_fold_and_seed_of_every_step_is_a_cell_command_with_a_dataset(hydra_compose):
     result = _dry(OUT="out", SEEDS="0 1", CELLS="rpm_cd rpm_ours")
     runs = dict(line.split(" ", 1) for line in result.stdout.splitlines())
     steps = [_parts(folder)[0] for folder in runs]
@@ -78,10 +76,9 @@ def test_every_fold_and_seed_of_every_step_is_a_cell_command_with_a_dataset():
         if step == "human_choice":
             nu, lines = name.removeprefix("rpm_ours_nu").split("_lines")
             assert f"loss.nu0={nu} loss.num_lines={lines} " in args
-    with initialize_config_dir(str(ROOT / "configs"), version_base="1.3"):
-        for args in runs.values():
-            cfg = compose("train", overrides=[*args.split(), f"paths.root_dir={ROOT}"])
-            assert cfg.dataset.name in ("mesh_folder", "modelnet40", "rgbd_sequence", "concat")
+    for args in runs.values():
+        cfg = hydra_compose("train", [*args.split(), f"paths.root_dir={ROOT}"])
+        assert cfg.dataset.name in ("mesh_folder", "modelnet40", "rgbd_sequence", "concat")
 
 
 def test_an_unknown_step_is_one_line_and_exit_code_2():

@@ -8,7 +8,6 @@ from pathlib import Path
 
 import pytest
 import torch
-from hydra import compose, initialize_config_dir
 
 from linereg.train import loop
 
@@ -18,12 +17,11 @@ SCRIPTS = sorted(path.stem for path in STUDIES.glob("*.py"))
 
 
 @pytest.fixture(scope="module")
-def trained_run(tmp_path_factory):
+def trained_run(tmp_path_factory, hydra_compose):
     """A tiny RPM-Net run folder."""
     run_dir = tmp_path_factory.mktemp("run")
     overrides = ["debug=tiny", f"paths.output_dir={run_dir}", "model.num_neighbors=8", "loss.num_lines=300"]
-    with initialize_config_dir(str(ROOT / "configs"), version_base="1.3"):
-        cfg = compose("train", overrides=[f"paths.root_dir={ROOT}", *overrides])
+    cfg = hydra_compose("train", [f"paths.root_dir={ROOT}", *overrides])
     loop.train(cfg)
     return run_dir
 

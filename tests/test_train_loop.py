@@ -8,7 +8,6 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from hydra import compose, initialize_config_dir
 
 from linereg.checkpoint import load_checkpoint
 from linereg.io import write_point_cloud
@@ -17,6 +16,7 @@ from linereg.models import load_model
 from linereg.structures import LossOutput
 from linereg.train import loop
 from linereg.train.logging import read_scalars
+from tests.conftest import compose_config
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -24,11 +24,7 @@ ROOT = Path(__file__).resolve().parent.parent
 def tiny_config(output_dir: Path, *overrides: str, debug: str | None = "tiny"):
     """``configs/train.yaml`` with a debug preset and the run folder in ``output_dir``."""
     preset = [f"debug={debug}"] if debug else []
-    with initialize_config_dir(str(ROOT / "configs"), version_base="1.3"):
-        return compose(
-            "train",
-            overrides=[*preset, f"paths.root_dir={ROOT}", f"paths.output_dir={output_dir}", *overrides],
-        )
+    return compose_config("train", [*preset, f"paths.root_dir={ROOT}", f"paths.output_dir={output_dir}", *overrides])
 
 
 # debug=tiny without its procedural-data settings, for other datasets.

@@ -14,12 +14,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from hydra import compose, initialize_config_dir
 
 from linereg.losses import build_loss
 from linereg.train import checkpoint, loop, randomness, resume
 from linereg.train.evaluate import evaluate
 from linereg.train.logging import RunLogger, read_scalars
+from tests.conftest import compose_config
 
 ROOT = Path(__file__).resolve().parent.parent
 SMALL = ["model.num_neighbors=8", "loss.num_lines=300"]
@@ -27,11 +27,9 @@ SMALL = ["model.num_neighbors=8", "loss.num_lines=300"]
 
 def tiny_config(output_dir: Path, *overrides: str):
     """``debug=tiny`` with the run folder in ``output_dir``."""
-    with initialize_config_dir(str(ROOT / "configs"), version_base="1.3"):
-        return compose(
-            "train",
-            overrides=["debug=tiny", f"paths.root_dir={ROOT}", f"paths.output_dir={output_dir}", *SMALL, *overrides],
-        )
+    return compose_config(
+        "train", ["debug=tiny", f"paths.root_dir={ROOT}", f"paths.output_dir={output_dir}", *SMALL, *overrides]
+    )
 
 
 def _step_losses(run_dir: Path) -> dict[int, float]:
@@ -214,11 +212,10 @@ def test_training_resumes_from_best_when_last_is_corrupt(tmp_path, monkeypatch):
     assert final["progress"]["epoch"] == 3 > best_epoch
 
 
-def test_evaluate_names_a_corrupt_checkpoint(tmp_path):
+def test_evaluate_names_a_corrupt_checkpoint(tmp_path, hydra_compose):
     path = checkpoint.save_checkpoint({"value": torch.zeros(100)}, tmp_path / "best.pt")
     _corrupt(path, "truncated")
-    with initialize_config_dir(str(ROOT / "configs"), version_base="1.3"):
-        cfg = compose("evaluate", overrides=[f"paths.root_dir={ROOT}", f"checkpoint={path}", "device=cpu"])
+    cfg = hydra_compose("evaluate", [f"paths.root_dir={ROOT}", f"checkpoint={path}", "device=cpu"])
     with pytest.raises(checkpoint.CorruptCheckpointError, match=rf"{re.escape(str(path))}: cannot read the checkpoint"):
         evaluate(cfg)
 

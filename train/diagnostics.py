@@ -1,9 +1,11 @@
-"""Which samples of a batch make the loss non-finite: the message of a skipped training step."""
+"""Diagnostics of training steps: which samples of a batch make the loss non-finite (the message of a
+skipped step), and the gradient norm of each loss term."""
 
 from __future__ import annotations
 
 import logging
 import math
+from collections.abc import Iterable
 from dataclasses import fields, replace
 from typing import Any
 
@@ -70,3 +72,27 @@ def describe_non_finite_loss(
     terms = ", ".join(f"{name}={float(value.detach()):.4g}" for name, value in loss_output.terms.items())
     found = "; ".join(culprits) if culprits else "no single sample reproduces it"
     return f"non-finite loss {float(loss_output.total.detach())} ({terms}) at {where}: {found}"
+
+
+def term_gradient_norms(loss_output: LossOutput, parameters: Iterable[nn.Parameter], scale: float) -> dict[str, float]:
+    """``{"grad_norm/<term>": L2 norm of d term / d parameters}`` for each (weighted) loss term.
+
+    One extra backward pass per term through the retained graph (``torch.autograd.grad``, leaving
+    ``.grad`` alone), on this process's batch; a term that does not depend on the parameters has
+    norm 0. Under float16 AMP (``scale``: the gradient scaler's factor, else 1) the term is scaled
+    like the loss and the norm unscaled.
+    """
+    if "total" in loss_output.terms:
+        raise ValueError(
+            "a loss term is named 'total', which clashes with train/grad_norm/total; rename the term in the "
+            "loss config (or set trainer.log_term_grad_norms=false)"
+        )
+    parameters = [p for p in parameters if p.requires_grad]
+    norms = {}
+    for name, term in loss_output.terms.items():
+        grads = []
+        if term.requires_grad:
+            grads = torch.autograd.grad(term * scale, parameters, retain_graph=True, allow_unused=True)
+        squares = [grad.float().square().sum() for grad in grads if grad is not None]
+        norms[f"grad_norm/{name}"] = float(torch.stack(squares).sum().sqrt()) / scale if squares else 0.0
+    return norms

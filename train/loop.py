@@ -58,7 +58,7 @@ from linereg.structures import LossOutput, PairBatch, RegistrationOutput
 from linereg.train import distributed, randomness
 from linereg.train.checkpoint import load_resume_checkpoint, save_checkpoint
 from linereg.train.curriculum import Curriculum, Stage
-from linereg.train.diagnostics import describe_non_finite_loss
+from linereg.train.diagnostics import describe_non_finite_loss, term_gradient_norms
 from linereg.train.epoch import EpochSums
 from linereg.train.evaluate import is_labelled
 from linereg.train.faults import kill_point
@@ -239,7 +239,10 @@ class Trainer:
             )
             return self._skip_step(message)
         logging_step = (self.global_step + 1) % self.settings.log_every == 0
-        term_norms = self._term_grad_norms(loss_output) if logging_step and self.settings.log_term_grad_norms else {}
+        term_norms = {}
+        if logging_step and self.settings.log_term_grad_norms:
+            scale = self.scaler.get_scale() if self.scaler.is_enabled() else 1.0
+            term_norms = term_gradient_norms(loss_output, self.model.parameters(), scale)
         self.optimizer.zero_grad(set_to_none=True)
         self.scaler.scale(loss_output.total).backward()
         self.scaler.unscale_(self.optimizer)
@@ -259,30 +262,6 @@ class Trainer:
         values.update(term_norms)
         values["lr"] = self.optimizer.param_groups[0]["lr"]
         return values
-
-    def _term_grad_norms(self, loss_output: LossOutput) -> dict[str, float]:
-        """``{"grad_norm/<term>": L2 norm of d term / d parameters}`` for each (weighted) loss term.
-
-        One extra backward pass per term through the retained graph (``torch.autograd.grad``,
-        leaving ``.grad`` alone), on this process's batch; a term that does not depend on the
-        parameters has norm 0. Under float16 AMP the term is scaled like the loss and the
-        norm unscaled.
-        """
-        if "total" in loss_output.terms:
-            raise ValueError(
-                "a loss term is named 'total', which clashes with train/grad_norm/total; rename the term in the "
-                "loss config (or set trainer.log_term_grad_norms=false)"
-            )
-        parameters = [p for p in self.model.parameters() if p.requires_grad]
-        scale = self.scaler.get_scale() if self.scaler.is_enabled() else 1.0
-        norms = {}
-        for name, term in loss_output.terms.items():
-            grads = []
-            if term.requires_grad:
-                grads = torch.autograd.grad(term * scale, parameters, retain_graph=True, allow_unused=True)
-            squares = [grad.float().square().sum() for grad in grads if grad is not None]
-            norms[f"grad_norm/{name}"] = float(torch.stack(squares).sum().sqrt()) / scale if squares else 0.0
-        return norms
 
     def _skip_step(self, message: str) -> None:
         """Skip this step, warn, and give up after ``max_bad_steps`` in a row."""
@@ -506,7 +485,9 @@ class Trainer:
         evaluated_state = load_checkpoint(evaluated_file, map_location=self.device)
         evaluated_epoch = int(evaluated_state["progress"]["epoch"])
         metrics = {k: v for k, v in evaluated_state["metrics"].items() if k.startswith("val/")}
-        metrics.update(self._evaluate_split(evaluated_file, evaluated_state))
+        evaluated = self.evaluator.checkpoint_on_split(self.config, evaluated_file, evaluated_state, self.run_dir)
+        self.logger.scalars(evaluated, self.global_step)
+        metrics.update(evaluated)
         metrics.update(self.initial_metrics)
         metrics["best_epoch"] = self.monitor.epoch
         content = {
@@ -527,25 +508,6 @@ class Trainer:
         distributed.barrier(self.ctx)
         results["metrics"] = metrics
         return results
-
-    def _evaluate_split(self, evaluated_file: Path, evaluated_state: Mapping[str, Any]) -> dict[str, float]:
-        """The weights of ``evaluated_state`` scored on ``evaluate_split`` (``{}`` when there is none)."""
-        split = self.config.get("evaluate_split")
-        dataset = build_split(self.config["dataset"], split, progress=self.settings.progress) if split else None
-        if dataset is None:
-            return {}
-        distributed.unwrap(self.model).load_state_dict(evaluated_state["model"])
-        epoch = int(evaluated_state["progress"]["epoch"])
-        metrics = self.evaluator.final(
-            dataset,
-            split,
-            self.run_dir / "evaluation",
-            name=f"{self.config['model']['name']} ({evaluated_file.name}, epoch {epoch})",
-            info={"checkpoint": str(evaluated_file), "dataset": self.config["dataset"].get("name"), "split": split},
-            keep=int(self.config["logger"].get("num_figures", 0)),
-        )
-        self.logger.scalars(metrics, self.global_step)
-        return metrics
 
 
 def train(cfg: DictConfig) -> dict[str, Any]:

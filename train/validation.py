@@ -3,7 +3,7 @@
 * :class:`Monitor`: the monitored validation metric and its best value so far (``best.pt``);
 * :class:`RunEvaluator`: the run's model on a split, its errors measured on the iterate chosen
   by the run's ``iterate`` rule (:mod:`linereg.registration.iterates`; the loss sees every
-  iterate), and the final evaluation written to ``<run>/evaluation/``;
+  iterate), and the final evaluation of a checkpoint written to ``<run>/evaluation/``;
 * :func:`write_run_metrics`: ``<run>/metrics.json``.
 """
 
@@ -21,6 +21,7 @@ import torch
 from torch import nn
 from torch.utils.data import Dataset
 
+from linereg.datasets.splits import build_split
 from linereg.registration.iterates import IterateRule
 from linereg.train import distributed
 from linereg.train.evaluate import Evaluation, evaluate_model, is_labelled, report, write_evaluation
@@ -206,6 +207,27 @@ class RunEvaluator:
         print(f"\nEvaluation of {info['checkpoint']} on the {split!r} split of {info['dataset']!r}:\n")
         print(report(name, evaluation, alphas))
         return metrics
+
+    def checkpoint_on_split(
+        self, config: Mapping[str, Any], file: Path, state: Mapping[str, Any], run_dir: Path
+    ) -> dict[str, float]:
+        """The weights of checkpoint ``state`` (read from ``file``) loaded into the model and scored by
+        :meth:`final` on the run ``config``'s ``evaluate_split`` into ``<run_dir>/evaluation`` (``{}``
+        when there is none)."""
+        split = config.get("evaluate_split")
+        dataset = build_split(config["dataset"], split, progress=self.settings.progress) if split else None
+        if dataset is None:
+            return {}
+        self.model.load_state_dict(state["model"])
+        epoch = int(state["progress"]["epoch"])
+        return self.final(
+            dataset,
+            split,
+            run_dir / "evaluation",
+            name=f"{config['model']['name']} ({file.name}, epoch {epoch})",
+            info={"checkpoint": str(file), "dataset": config["dataset"].get("name"), "split": split},
+            keep=int(config["logger"].get("num_figures", 0)),
+        )
 
     def iterate_info(self) -> dict[str, Any]:
         """The iterate rule as the ``iterate`` entry of ``metrics.json``."""

@@ -40,7 +40,11 @@ FLAT = 1e-3
 FREE_MOVE = 0.2
 """The size of that move: a rotation of 0.2 rad (11 degrees) or a shift of 0.2 RMS radii of the overlap."""
 RIVAL_STEPS = 8
-"""Welsch IRLS steps that polish each turned answer (3 to 1 point spacings)."""
+"""Welsch IRLS steps that polish each turned answer (3 to 1 point spacings) ..."""
+RIVAL_POINTS = 512
+"""... on this many of the measured source points; the best-fitting one then gets
+:data:`RIVAL_SETTLE` more steps on all of them."""
+RIVAL_SETTLE = 2
 RIVAL_GAP_DEG = 10.0
 """A polished turned answer closer than this to the answer is the answer again."""
 RIVAL_FITNESS = 0.9
@@ -238,21 +242,28 @@ def symmetric_rival(
     source: np.ndarray, target: NearestNeighbors, transform: np.ndarray, inliers: np.ndarray, sigma: float
 ) -> float | None:
     """The angle (degrees) from the answer of a turned one (:func:`turned`), polished by
-    :data:`RIVAL_STEPS` Welsch IRLS steps down to ``sigma`` and still more than
+    :data:`RIVAL_STEPS` Welsch IRLS steps down to ``sigma`` on :data:`RIVAL_POINTS` of ``source
+    (n, 3)`` and, the best-fitting of them, :data:`RIVAL_SETTLE` steps on all, still more than
     :data:`RIVAL_GAP_DEG` away, whose :func:`soft_fitness` at ``sigma`` is at least
     :data:`RIVAL_FITNESS` of the answer's; ``None`` when there is none."""
     if len(inliers) < 4:
         return None
     rivals = turned(transform, inliers)
+    sample = source[:: max(len(source) // RIVAL_POINTS, 1)]
     scales = np.geomspace(3.0 * sigma, sigma, RIVAL_STEPS)
-    rotations, translations = welsch_irls((rivals[:, :3, :3], rivals[:, :3, 3]), source, target, scales)
-    rivals[:, :3, :3], rivals[:, :3, 3] = rotations, translations
+    rotations, translations = welsch_irls((rivals[:, :3, :3], rivals[:, :3, 3]), sample, target, scales)
     gaps = rotation_gap_deg(rotations, transform[:3, :3])
+    rivals[:, :3, :3], rivals[:, :3, 3] = rotations, translations
+    fits = np.where(gaps > RIVAL_GAP_DEG, soft_fitness(sample, target, rivals, sigma), -1.0)
+    best = rivals[int(fits.argmax())][None]
+    rotation, translation = welsch_irls((best[:, :3, :3], best[:, :3, 3]), source, target, [sigma] * RIVAL_SETTLE)
+    best[:, :3, :3], best[:, :3, 3] = rotation, translation
+    gap = float(rotation_gap_deg(rotation, transform[:3, :3])[0])
     own = float(soft_fitness(source, target, transform[None], sigma)[0])
-    fits = np.where(gaps > RIVAL_GAP_DEG, soft_fitness(source, target, rivals, sigma), 0.0)
-    if own <= 0 or fits.max() < RIVAL_FITNESS * own:
+    fit = float(soft_fitness(source, target, best, sigma)[0])
+    if own <= 0 or gap <= RIVAL_GAP_DEG or fit < RIVAL_FITNESS * own:
         return None
-    return float(gaps[int(fits.argmax())])
+    return gap
 
 
 def scale_mismatch(source_spacing: float, target_spacing: float) -> str | None:

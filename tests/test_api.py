@@ -284,3 +284,17 @@ def test_register_many_names_the_bad_pair(pair):
         list(linereg.register_many([(src, tgt), (src, np.full((5, 3), np.nan))], method="icp_point", progress=False))
     with pytest.raises(TypeError, match=r"pairs\[0\]"):
         list(linereg.register_many([src], progress=False))
+
+
+def test_the_finish_polishes_from_the_networks_pose_translation_included(pair):
+    """A view of part of the target: the polish starts where the network put the view, not at the
+    target's centroid (where centring both clouds would move it)."""
+    from linereg.registration.learned import Finish
+
+    src, tgt, T = pair
+    view = src[src[:, 0] > np.quantile(src[:, 0], 0.6)]
+
+    polished = Finish().polish(view, tgt, T)
+
+    assert rotation_error_deg(polished.transform, T) < 0.1
+    assert np.linalg.norm(polished.transform[:3, 3] - T[:3, 3]) < 1e-2

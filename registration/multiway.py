@@ -14,13 +14,18 @@ Edges. ``mode="sequence"``: each scan against its next ``neighbours`` scans (odo
 closures among the others, proposed where the poses so far predict an overlap. ``mode="unordered"``:
 every pair ranked by a cheap overlap estimate (the fitness of a short FPFH + RANSAC on a coarse
 grid), and each scan's best ``candidates`` pairs registered. Every edge is registered with
-:func:`linereg.register_many` (any ``method`` of :func:`linereg.register`, a network included) and
-only confident ones enter the graph, so the work grows with the pairs registered.
+:func:`linereg.register_many` (any ``method`` of :func:`linereg.register`, a network included) on the
+scans' voxel grids (about ``grid_points`` points each; depth images' row-and-column sampling would
+otherwise skew the confidence test), and only confident ones enter the graph, so the work grows
+with the pairs registered.
 
 Graph. Open3D's pose graph (``pipelines.registration.global_optimization``, Levenberg-Marquardt
 with a line process): each edge's information matrix comes from the pair's correspondences on the
 voxel grid (``get_information_matrix_from_point_clouds``); odometry edges are certain, loop
 closures and unordered edges uncertain, and the line process drops those that disagree with the rest.
+The starting poses follow a spanning tree of the edges that agree with the most triangles of edges,
+then hold the most correspondences, so that one wrong edge does not set them; an edge the graph keeps
+but does not follow (too few correspondences to matter) is not counted as kept.
 
 Verdicts. A scan is placed when kept edges connect it to the first scan, and ``verdicts`` names
 them; otherwise it is left out with the reason. A scan no confident edge reaches is never placed.

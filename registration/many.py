@@ -23,8 +23,6 @@ import time
 from collections.abc import Iterable, Iterator, Mapping
 from typing import Any
 
-from tqdm.auto import tqdm
-
 from linereg.registration.api import DEFAULT_METHOD, RegistrationResult, _build, as_cloud, register_clouds
 from linereg.registration.learned import LearnedRegistration
 from linereg.registration.trust import surface_points
@@ -60,6 +58,8 @@ def register_many(
         raise ValueError(f"batch_size must be >= 1, got {batch_size}")
     solver, description = _build(method, device, options)
     total = len(pairs) if hasattr(pairs, "__len__") else None
+    from tqdm.auto import tqdm  # here: the single-pair command does not pay for it
+
     bar = tqdm(total=total, desc="register", unit="pair", disable=not progress)
     iterator, done = iter(pairs), 0
     try:

@@ -73,7 +73,8 @@ def spacing_of(points: np.ndarray, sample: int = 20000, seed: int = 0) -> float:
     """The sampling distance of ``points (N, 3)`` at its full density: the median distance from a
     point to its nearest other point, on a random ``sample`` (scaled by ``sqrt(sample / N)``, the
     spacing of a surface sampled ``N / sample`` times more densely); repeated points count once."""
-    points = np.unique(points, axis=0)
+    order = points[np.lexsort(points.T[::-1])]  # the rows of np.unique(points, axis=0), at half its cost
+    points = order[np.concatenate([[True], np.any(order[1:] != order[:-1], axis=1)])]
     rng = np.random.default_rng(seed)
     subset = points if len(points) <= sample else points[rng.choice(len(points), sample, replace=False)]
     distances, _ = NearestNeighbors(subset).query(subset, k=2)

@@ -32,8 +32,8 @@ DEFAULT_SOLVER = "robust"
 POLISH_ONLY = {"starts": 1, "coarse_steps": 0, "rounds": 1, "global_candidates": "never"}
 """The solver's options of the polish that finishes a network's pose: from that pose alone, no
 coarse stage, no later round, no global candidates (the Welsch IRLS polish and the fine steps), both
-clouds keeping the network's relative pose (:meth:`Finish.polish`). The coarse steps would reach
-more poses the check trusts, but on 256-point Airplane test views some of them wrong (9.9°)."""
+clouds keeping the network's relative pose (:meth:`Finish.polish`). Coarse steps first would leave more
+poses trusted, some of them wrong on 256-point views (``scripts/studies/finish_polish.py``)."""
 
 
 class _Prepared(NamedTuple):

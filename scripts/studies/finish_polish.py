@@ -12,6 +12,7 @@ more than 2 and 5 degrees off (the solver then does not run).
 
 from __future__ import annotations
 
+import argparse
 import sys
 from pathlib import Path
 
@@ -26,7 +27,8 @@ VARIANTS = {
 }
 
 
-def main() -> None:
+def main(argv: list[str] | None = None) -> None:
+    argparse.ArgumentParser(description=__doc__.splitlines()[0]).parse_args(argv)
     from linereg import pretrained
     from linereg.checks import nearest_rotation
     from linereg.datasets.benchmark_pairs import run_pairs, select_pairs

@@ -35,7 +35,8 @@ from linereg.registration.trust import free_scale, surface_points
 from linereg.registry import UnknownNameError
 
 DEFAULT_METHOD = "robust"
-_MIN_POINTS = 3
+MIN_POINTS = 3
+"""Fewest points a cloud may have (the command's and the library's input check)."""
 
 
 @dataclass
@@ -78,15 +79,7 @@ def as_cloud(value: Any, name: str) -> tuple[np.ndarray, np.ndarray | None]:
     if isinstance(value, PointCloud):
         points, normals = value.xyz, value.normals
     elif isinstance(value, str | os.PathLike):
-        path = Path(value).expanduser()
-        if path.is_dir():
-            raise ValueError(f"{name}={value}: is a folder, expected a point-cloud file")
-        if not path.exists():
-            raise FileNotFoundError(f"{name}={value}: no such file")
-        try:
-            cloud = read_point_cloud(path, min_points=_MIN_POINTS)
-        except ValueError as error:
-            raise ValueError(f"{name}={value}: {error}") from error
+        cloud = read_cloud_file(value, name)
         points, normals = cloud.xyz, cloud.normals
     elif type(value).__module__.startswith("open3d"):
         if not hasattr(value, "points"):
@@ -102,8 +95,27 @@ def as_cloud(value: Any, name: str) -> tuple[np.ndarray, np.ndarray | None]:
             f"{name}: expected an (N, 3) numpy array, a torch tensor, an Open3D PointCloud or a file path, "
             f"got {type(value).__name__}"
         )
-    check_points(points, name, batched=False, min_points=_MIN_POINTS)
+    check_points(points, name, batched=False, min_points=MIN_POINTS)
     return np.asarray(points, dtype=np.float64), None if normals is None else np.asarray(normals, dtype=np.float64)
+
+
+def read_cloud_file(path: str | os.PathLike, name: str) -> PointCloud:
+    """The cloud in the file ``path``, given as the argument ``name``.
+
+    Raises:
+        FileNotFoundError: no such file (the message names the argument).
+        ValueError: a folder, or a file :func:`linereg.io.read_point_cloud` cannot read as a cloud of at
+            least :data:`MIN_POINTS` finite points (naming the argument).
+    """
+    file = Path(path).expanduser()
+    if file.is_dir():
+        raise ValueError(f"{name}={path}: is a folder, expected a point-cloud file")
+    if not file.exists():
+        raise FileNotFoundError(f"{name}={path}: no such file")
+    try:
+        return read_point_cloud(file, min_points=MIN_POINTS)
+    except ValueError as error:
+        raise ValueError(f"{name}={path}: {error}") from error
 
 
 def _checked_init(init: Any) -> np.ndarray | None:

@@ -42,8 +42,6 @@ from linereg.train.cli import fail, reported, require, run_app
 
 COMMAND = "linereg-register"
 
-_MIN_POINTS = 3
-
 
 class RegisterError(ValueError):
     """A bad argument of the register command; the message names it."""
@@ -124,20 +122,15 @@ def warn(note: str) -> None:
 
 
 def read_cloud(path: Any, argument: str):
-    """:func:`linereg.io.read_point_cloud` with errors that name the argument."""
-    from linereg.io import read_point_cloud
+    """:func:`linereg.registration.api.read_cloud_file` (the library's check) with errors as :class:`RegisterError`."""
+    from linereg.registration.api import read_cloud_file
 
     if path is None or str(path) in ("", "???"):
         raise RegisterError(f"{argument}= is required (a point-cloud file)")
-    file = Path(str(path)).expanduser()
-    if file.is_dir():
-        raise RegisterError(f"{argument}={path}: is a folder, expected a point-cloud file")
-    if not file.exists():
-        raise RegisterError(f"{argument}={path}: no such file")
     try:
-        return read_point_cloud(file, min_points=_MIN_POINTS)
-    except ValueError as error:
-        raise RegisterError(f"{argument}={path}: {error}") from error
+        return read_cloud_file(str(path), argument)
+    except (FileNotFoundError, ValueError) as error:
+        raise RegisterError(str(error)) from error
 
 
 def method_config(cfg: DictConfig) -> dict[str, Any] | str:

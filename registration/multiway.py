@@ -47,6 +47,7 @@ from linereg.knn import NearestNeighbors
 from linereg.registration.api import DEFAULT_METHOD, as_cloud
 from linereg.registration.features import FeatureOptions, feature_voxel, fpfh
 from linereg.registration.many import register_many
+from linereg.registration.pose_graph import information, optimise_graph
 
 MODES = ("sequence", "unordered")
 OVERLAP_POINTS = 1000
@@ -122,6 +123,11 @@ class Edge:
     kind: str
     kept: bool = False
     warnings: tuple[str, ...] = ()
+
+    @property
+    def uncertain(self) -> bool:
+        """Every edge but odometry may be wrong: the pose graph's line process may drop it."""
+        return self.kind != ODOMETRY
 
 
 @dataclass
@@ -410,7 +416,7 @@ def spanning_poses(count: int, edges: list[Edge], rank: list[tuple] | None = Non
     for n, edge in enumerate(edges):
         touching.setdefault(edge.source, []).append(n)
         touching.setdefault(edge.target, []).append(n)
-    heap = [(edges[n].kind != ODOMETRY, *(-value for value in rank[n]), n) for n in touching.get(0, [])]
+    heap = [(edges[n].uncertain, *(-value for value in rank[n]), n) for n in touching.get(0, [])]
     heapq.heapify(heap)
     while heap:
         edge = edges[heapq.heappop(heap)[-1]]
@@ -421,7 +427,7 @@ def spanning_poses(count: int, edges: list[Edge], rank: list[tuple] | None = Non
         else:
             poses[edge.target], new = poses[edge.source] @ np.linalg.inv(edge.transformation), edge.target
         for n in touching[new]:
-            heapq.heappush(heap, (edges[n].kind != ODOMETRY, *(-value for value in rank[n]), n))
+            heapq.heappush(heap, (edges[n].uncertain, *(-value for value in rank[n]), n))
     return poses
 
 
@@ -443,14 +449,18 @@ def place_scans(scans: Sequence[Any], edges: Sequence[Edge], options: MultiwayOp
 def place(scans: Scans, edges: list[Edge], options: MultiwayOptions) -> MultiwayResult:
     """Optimise the pose graph of the confident ``edges``, keep what it keeps and place what they reach."""
     confident = [edge for edge in edges if edge.confident]
-    informations = {id(edge): information(scans, edge, options) for edge in confident}
+    distance = options.correspondence_distance * scans.voxel
+    informations = {
+        id(edge): information(scans.grids[edge.source], scans.grids[edge.target], distance, edge.transformation)
+        for edge in confident
+    }
     support = triangle_support(scans, confident, options)
     rank = [(votes, informations[id(edge)][5, 5]) for edge, votes in zip(confident, support, strict=True)]
     initial = spanning_poses(len(scans), confident, rank)
     connected = [pose is not None for pose in initial]
     linked = [edge for edge in confident if initial[edge.source] is not None and initial[edge.target] is not None]
     for _ in range(2):
-        optimised, survived = optimise_graph(initial, linked, informations, scans.voxel, options)
+        optimised, survived = optimise_graph(initial, linked, informations, distance, options)
         kept = [edge for edge in survived if agrees(scans, edge, optimised, options)]
         if len(kept) == len(linked):
             break
@@ -471,72 +481,6 @@ def place(scans: Scans, edges: list[Edge], options: MultiwayOptions) -> Multiway
         merged=merge(scans, poses),
         voxel=scans.voxel,
     )
-
-
-def information(scans: Scans, edge: Edge, options: MultiwayOptions) -> np.ndarray:
-    """``(6, 6)`` information matrix of ``edge`` from the correspondences of its grids within
-    ``correspondence_distance`` voxels (Open3D's; entry ``[5, 5]`` counts them)."""
-    import open3d as o3d
-
-    return np.asarray(
-        o3d.pipelines.registration.get_information_matrix_from_point_clouds(
-            scans.grids[edge.source],
-            scans.grids[edge.target],
-            options.correspondence_distance * scans.voxel,
-            edge.transformation,
-        )
-    )
-
-
-def optimise_graph(
-    initial: list[np.ndarray | None],
-    edges: list[Edge],
-    informations: dict[int, np.ndarray],
-    voxel: float,
-    options: MultiwayOptions,
-) -> tuple[list[np.ndarray], list[Edge]]:
-    """Open3D's ``global_optimization`` of ``edges`` (their information matrices by ``id``) from the
-    ``initial`` poses (identity where ``None``): the optimised poses and the edges it kept."""
-    import open3d as o3d
-
-    registration = o3d.pipelines.registration
-    distance = options.correspondence_distance * voxel
-    graph = registration.PoseGraph()
-    for pose in initial:
-        graph.nodes.append(registration.PoseGraphNode(np.eye(4) if pose is None else pose))
-    for edge in edges:
-        graph.edges.append(
-            registration.PoseGraphEdge(
-                edge.source,
-                edge.target,
-                edge.transformation,
-                informations[id(edge)],
-                uncertain=edge.kind != ODOMETRY,
-            )
-        )
-    settings = registration.GlobalOptimizationOption(
-        max_correspondence_distance=distance,
-        edge_prune_threshold=options.edge_prune_threshold,
-        preference_loop_closure=options.preference_loop_closure,
-        reference_node=0,
-    )
-    with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
-        registration.global_optimization(
-            graph,
-            registration.GlobalOptimizationLevenbergMarquardt(),
-            registration.GlobalOptimizationConvergenceCriteria(),
-            settings,
-        )
-    remaining = [(left.source_node_id, left.target_node_id, np.asarray(left.transformation)) for left in graph.edges]
-    kept, start = [], 0
-    for edge in edges:
-        for n in range(start, len(remaining)):
-            source, target, transform = remaining[n]
-            if (source, target) == (edge.source, edge.target) and np.allclose(transform, edge.transformation):
-                kept.append(edge)
-                start = n + 1
-                break
-    return [np.asarray(node.pose) for node in graph.nodes], kept
 
 
 def agrees(scans: Scans, edge: Edge, poses: list[np.ndarray], options: MultiwayOptions) -> bool:

@@ -20,7 +20,7 @@ import time
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -30,8 +30,9 @@ from linereg.io import PointCloud, read_point_cloud
 from linereg.registration.evaluation import assess_registration
 from linereg.registration.learned import LearnedRegistration
 from linereg.registration.methods import METHODS, MethodResult
+from linereg.registration.noise import noisy_sides, smoothed, surface_noise
 from linereg.registration.similarity import scale_guesses, scale_of, similarity_polish, with_scale
-from linereg.registration.trust import free_scale, surface_points
+from linereg.registration.trust import SCALE_MOVE, free_scale, surface_points
 from linereg.registry import UnknownNameError
 
 DEFAULT_METHOD = "robust"
@@ -241,18 +242,16 @@ def register_clouds(
     start = time.perf_counter()
     if on_surface is True:
         on_surface = surface_points(tgt, src)
-    seen, seen_normals = tgt, tgt_normals
-    if on_surface is not None:
-        seen, seen_normals = tgt[on_surface], None if tgt_normals is None else tgt_normals[on_surface]
     if initial is not None:
         src = src @ initial[:3, :3].T + initial[:3, 3]
         src_normals = None if src_normals is None else src_normals @ initial[:3, :3].T
+    seen, noise = _seen(src, src_normals, tgt, tgt_normals, on_surface)
     solve = _solve_with_scale if scale else _solve_rigid
-    result, factor, found = solve(solver, src, seen, src_normals, seen_normals, tgt, fitness_threshold, on_surface)
+    result, factor, found = solve(solver, seen, src, tgt, fitness_threshold, on_surface)
     seconds = time.perf_counter() - start
     transform = np.asarray(result.transform, dtype=np.float64)
     warnings = [*result.info.get("warnings", ()), *found.pop("warnings")]
-    info = {"method": description, **result.info, **found, "warnings": warnings}
+    info = {"method": description, **result.info, **found, "warnings": warnings, **noise}
     if on_surface is not None:
         info["clutter"] = float(1.0 - on_surface.mean())
     if initial is not None:
@@ -269,27 +268,72 @@ def register_clouds(
     )
 
 
-def _solve_rigid(solver, src, seen, src_normals, seen_normals, tgt, fitness_threshold, on_surface):
-    """``(result, 1.0, quality)``: ``solver`` on ``src`` and the target's clutter-free points ``seen``,
-    judged against the whole target ``tgt``."""
-    result = solver(src, seen, src_normals, seen_normals)
+class _Seen(NamedTuple):
+    """The clouds the solver sees: the source and the target's clutter-free points, each smoothed
+    when it is far noisier than the other (:mod:`~linereg.registration.noise`)."""
+
+    src: np.ndarray
+    tgt: np.ndarray
+    src_normals: np.ndarray | None
+    tgt_normals: np.ndarray | None
+
+
+def _seen(src, src_normals, tgt, tgt_normals, on_surface) -> tuple[_Seen, dict[str, Any]]:
+    """The solver's :class:`_Seen` clouds and ``info``'s ``surface_noise`` (both clouds', in point
+    spacings) and ``smoothed`` (the clouds smoothed for the solver)."""
+    if on_surface is not None:
+        tgt, tgt_normals = tgt[on_surface], None if tgt_normals is None else tgt_normals[on_surface]
+    noise = {"source": surface_noise(src), "target": surface_noise(tgt)}
+    smooth = dict(zip(noise, noisy_sides(noise["source"], noise["target"]), strict=True))
+    src, tgt = (smoothed(cloud) if smooth[name] else cloud for name, cloud in (("source", src), ("target", tgt)))
+    seen = _Seen(src, tgt, src_normals, tgt_normals)
+    return seen, {"surface_noise": noise, "smoothed": [name for name, chosen in smooth.items() if chosen]}
+
+
+def _solve_rigid(solver, seen: _Seen, src, tgt, fitness_threshold, on_surface):
+    """``(result, 1.0, quality)``: ``solver`` on the :class:`_Seen` clouds, judged on the source
+    ``src`` and the whole target ``tgt``."""
+    result = solver(*seen)
     return result, 1.0, quality(src, tgt, np.asarray(result.transform, dtype=np.float64), fitness_threshold, on_surface)
 
 
-def _solve_with_scale(solver, src, seen, src_normals, seen_normals, tgt, fitness_threshold, on_surface):
+def _solve_with_scale(solver, seen: _Seen, src, tgt, fitness_threshold, on_surface):
     """``(result, scale, quality)`` of the similarity (:mod:`~linereg.registration.similarity`): the rigid
-    ``solver`` on the source scaled by each guess, a similarity polish, the trusted (else best-fitting) answer."""
-    best = None
-    for guess in scale_guesses(src, seen):
-        result = solver(guess * src, seen, src_normals, seen_normals)
-        transform = similarity_polish(src, seen, with_scale(np.asarray(result.transform, dtype=np.float64), guess))
+    ``solver`` on the :class:`_Seen` source scaled by each guess, a similarity polish, the trusted (else
+    best-fitting) answer, judged on ``src`` and the whole target ``tgt``; when the fit leaves its scale
+    free, the rigid answer at the point spacings' ratio (:func:`_scale_by_spacing`)."""
+    best, by_spacing = None, None
+    for guess in scale_guesses(seen.src, seen.tgt):
+        result = solver(guess * seen.src, seen.tgt, seen.src_normals, seen.tgt_normals)
+        by_spacing = by_spacing or (guess, result)
+        rigid = np.asarray(result.transform, dtype=np.float64)
+        transform = similarity_polish(seen.src, seen.tgt, with_scale(rigid, guess))
         factor = scale_of(transform)
         found = quality(factor * src, tgt, with_scale(transform, 1.0 / factor), fitness_threshold, on_surface)
-        loose = free_scale(src, seen, transform) if found["confident"] else None
+        loose = free_scale(seen.src, seen.tgt, transform) if found["confident"] else None
         if loose is not None:
             found = {**found, "confident": False, "warnings": [*found["warnings"], loose]}
         rank = (found["confident"], found["fitness"])
         if best is None or rank > best[0]:
-            info = {**result.info, "scale_guess": guess}
-            best = rank, MethodResult(transform=transform, seconds=result.seconds, info=info), factor, found
-    return best[1:]
+            info = {**result.info, "scale_guess": guess, "scale_from": "fit"}
+            best = rank, MethodResult(transform=transform, seconds=result.seconds, info=info), factor, found, loose
+    _, answer, factor, found, loose = best
+    if loose is not None:
+        return _scale_by_spacing((answer, factor, found), *by_spacing, src, tgt, fitness_threshold, on_surface)
+    return answer, factor, found
+
+
+def _scale_by_spacing(fitted, guess, result, src, tgt, fitness_threshold, on_surface):
+    """A fit ``(answer, scale, quality)`` that leaves its scale free within
+    :data:`~linereg.registration.trust.SCALE_MOVE` (a room pair whose planes slide): the rigid
+    ``result`` at the point spacings' ratio ``guess`` (one sensor's points in two units) when that ratio
+    lies within the free range and register's check trusts the rigid answer there, else ``fitted``."""
+    _, factor, _ = fitted
+    if abs(factor / guess - 1.0) > SCALE_MOVE:
+        return fitted
+    rigid = np.asarray(result.transform, dtype=np.float64)
+    held = quality(guess * src, tgt, rigid, fitness_threshold, on_surface)
+    if not held["confident"]:
+        return fitted
+    info = {**result.info, "scale_guess": guess, "scale_from": "point spacings"}
+    return MethodResult(transform=with_scale(rigid, guess), seconds=result.seconds, info=info), guess, held

@@ -10,7 +10,11 @@
    TPAMI 1991) from each answer, the scale free at every step.
 
 The guess whose polished answer :func:`~linereg.registration.evaluation.assess_registration`
-trusts (else fits best) is the answer; its scale is ``RegistrationResult.scale``.
+trusts (else fits best) is the answer; its scale is ``RegistrationResult.scale``. A fit that leaves
+its scale free (:func:`~linereg.registration.trust.free_scale`: a room pair's planes slide, and a
+fit of partly overlapping rooms shrinks the source by a few per cent) yields to the rigid answer at
+the spacings' ratio when that ratio lies within the free range and the rigid answer is trusted:
+``info["scale_from"]`` says ``"point spacings"`` rather than ``"fit"``.
 """
 
 from __future__ import annotations

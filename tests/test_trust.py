@@ -119,6 +119,24 @@ def test_other_units_are_caught_rigidly_and_solved_with_scale(factor):
     assert np.cbrt(np.linalg.det(similar.transformation[:3, :3])) == pytest.approx(similar.scale)
 
 
+
+def test_a_free_scale_is_fixed_by_the_point_spacings_only_within_its_free_range():
+    """A fit that leaves its scale free takes the spacings' ratio only where that ratio lies within the
+    free range and the rigid answer there is trusted; otherwise the fit stands."""
+    from linereg.registration.api import _scale_by_spacing
+    from linereg.registration.methods import MethodResult
+
+    source, target = bumpy(3000, 1), 2.0 * moved(bumpy(4000, 2), TRUTH)
+    fitted = (MethodResult(np.eye(4), 0.0, {}), 1.95, {"confident": False})
+    truth = np.diag([2.0, 2.0, 2.0, 1.0]) @ TRUTH
+    rigid = MethodResult(truth @ np.diag([0.5, 0.5, 0.5, 1.0]), 0.0, {})  # maps the source x2 onto the target
+    held, factor, found = _scale_by_spacing(fitted, 2.0, rigid, source, target, None, None)
+    assert factor == 2.0 and found["confident"] and held.info["scale_from"] == "point spacings"
+    assert np.allclose(held.transform, truth)
+    assert _scale_by_spacing(fitted, 2.1, rigid, source, target, None, None) is fitted  # outside the free range
+    wrong = MethodResult(np.linalg.inv(TRUTH), 0.0, {})
+    assert _scale_by_spacing(fitted, 2.0, wrong, source, target, None, None) is fitted  # not trusted there
+
 def test_a_mirror_image_is_not_trusted():
     source, target = bumpy(3000, 1), bumpy(4000, 2) * [-1.0, 1.0, 1.0]
     result = linereg.register(source, target)
@@ -198,3 +216,15 @@ def test_real_scans_in_clutter_and_in_millimetres(shared_data):
     millimetres = linereg.register(source, 1000.0 * target, scale=True)
     assert millimetres.confident and rotation_error(millimetres, truth) < 0.5
     assert abs(millimetres.scale / 1000.0 - 1.0) < 0.01
+
+
+def test_a_room_pair_in_other_units_takes_its_scale_from_the_point_spacings(shared_data):
+    """The GeoTransformer 3DMatch demo pair, its target x2: the similarity fit leaves the scale free
+    by 3 % (planes slide); the spacings' ratio fixes it, and the answer is trusted."""
+    folder = shared_data / "3dmatch/geotransformer_demo/demo"
+    if not folder.is_dir():
+        pytest.skip(f"{folder} not found")
+    source, target, truth = (np.load(folder / f"{name}.npy") for name in ("src", "ref", "gt"))
+    result = linereg.register(source, 2.0 * target, scale=True)
+    assert result.confident and result.info["scale_from"] == "point spacings"
+    assert abs(result.scale / 2.0 - 1.0) < 0.01 and rotation_error(result, truth) < 2.0

@@ -119,7 +119,6 @@ def test_other_units_are_caught_rigidly_and_solved_with_scale(factor):
     assert np.cbrt(np.linalg.det(similar.transformation[:3, :3])) == pytest.approx(similar.scale)
 
 
-
 def test_a_free_scale_is_fixed_by_the_point_spacings_only_within_its_free_range():
     """A fit that leaves its scale free takes the spacings' ratio only where that ratio lies within the
     free range and the rigid answer there is trusted; otherwise the fit stands."""
@@ -136,6 +135,7 @@ def test_a_free_scale_is_fixed_by_the_point_spacings_only_within_its_free_range(
     assert _scale_by_spacing(fitted, 2.1, rigid, source, target, None, None) is fitted  # outside the free range
     wrong = MethodResult(np.linalg.inv(TRUTH), 0.0, {})
     assert _scale_by_spacing(fitted, 2.0, wrong, source, target, None, None) is fitted  # not trusted there
+
 
 def test_a_mirror_image_is_not_trusted():
     source, target = bumpy(3000, 1), bumpy(4000, 2) * [-1.0, 1.0, 1.0]

@@ -29,11 +29,20 @@ from linereg.registration.methods import METHODS, MethodResult, run_with_init, t
 
 DEFAULT_SOLVER = "robust"
 
-POLISH_ONLY = {"starts": 1, "coarse_steps": 0, "rounds": 1, "global_candidates": "never"}
+POLISH_ONLY = {
+    "starts": 1,
+    "coarse_steps": 0,
+    "rounds": 1,
+    "global_candidates": "never",
+    "polish_nu": 0.2,
+    "polish_steps": 40,
+}
 """The solver's options of the polish that finishes a network's pose: from that pose alone, no
 coarse stage, no later round, no global candidates (the Welsch IRLS polish and the fine steps), both
-clouds keeping the network's relative pose (:meth:`Finish.polish`). Coarse steps first would leave more
-poses trusted, some of them wrong on 256-point views (``scripts/studies/finish_polish.py``)."""
+clouds keeping the network's relative pose (:meth:`Finish.polish`). The polish starts at a Welsch
+scale of 0.2 (the solver's polish: 0.05), falling over 40 steps, so that a network pose a few degrees
+off reaches the basin; coarse steps first would leave poses trusted that are wrong on 256-point views.
+Both chosen on the Airplane protocol's validation views (``scripts/studies/finish_polish.py``)."""
 
 
 class _Prepared(NamedTuple):

@@ -6,6 +6,7 @@
     python scripts/bench_register.py --scans --repeats 2  # real scans, the command vs fpfh_ransac, per path
     python scripts/bench_register.py --scans --baseline ../other-checkout   # + that checkout's command, same run
     python scripts/bench_register.py --throughput rpm_ours_airplane --pairs 30   # solver vs network vs finished network
+    python scripts/bench_register.py --throughput rpm_ours_airplane --pairs-of rpm_ours_human   # pairs it never saw
 
 Pairs: :mod:`linereg.datasets.partial_vs_whole` on the ModelNet40 airplanes of the shared data (source a
 hidden-point-removal view of 1024 points, target 2048 points of the whole shape). In one run,
@@ -40,7 +41,8 @@ to the reference.
 With ``--throughput <network>`` (a pretrained name or run) it times :func:`linereg.register_many` in one
 process on ``--pairs`` test pairs of that network's protocol (seed 0): the solver, the bare network
 and the finished network (``refine=True``), as pairs per second with their mean Err_R, confident share
-and, for the finished network, how often the solver ran.
+and, for the finished network, how often the solver ran; ``--pairs-of <network>`` takes the test pairs
+of that network's protocol instead (pairs the timed network never trained on).
 
 With ``--baseline <checkout>`` the same command of another checkout of linereg (another version)
 is timed beside it, on the same pairs, in the same run: ``command / baseline``.
@@ -298,14 +300,16 @@ def measure_scans(pairs: list[ScanPair], folder: Path, repeats: int, baseline: P
     return rows
 
 
-def throughput(network: str, count: int) -> dict[str, dict[str, float]]:
-    """``register_many`` on ``count`` test pairs of ``network``'s protocol, in one process: per way
-    (``solver``, ``network``, ``finished network``), pairs per second, mean and max Err_R, the
-    confident share, its precision (confident answers within 5 degrees) and how often the solver ran."""
+def throughput(network: str, count: int, pairs_of: str | None = None) -> dict[str, dict[str, float]]:
+    """``register_many`` on ``count`` test pairs of ``network``'s protocol (of ``pairs_of``'s: pairs
+    the network never trained on), in one process: per way (``solver``, ``network``, ``finished
+    network``), pairs per second, mean and max Err_R, the confident share, its precision (confident
+    answers within 5 degrees) and how often the solver ran."""
     from linereg import pretrained, register_many
     from linereg.datasets.benchmark_pairs import run_pairs
 
-    run = str(pretrained.path(network)) if pretrained.is_name(network) else network
+    owner = pairs_of or network
+    run = str(pretrained.path(owner)) if pretrained.is_name(owner) else owner
     pairs = run_pairs(run=run, split="test", pairs=count, seed=0)
     clouds = [(pair.src_xyz.astype(np.float64), pair.tgt_xyz.astype(np.float64)) for pair in pairs]
     ways = {"solver": {}, "network": {"method": network}, "finished network": {"method": network, "refine": True}}
@@ -334,10 +338,11 @@ def _rotation_error(transform: np.ndarray, truth: np.ndarray) -> float:
     return float(rotation_gap_deg(transform[None, :3, :3], _rigid(truth)[:3, :3])[0])
 
 
-def print_throughput(network: str, rows: dict[str, dict[str, float]]) -> None:
+def print_throughput(network: str, rows: dict[str, dict[str, float]], pairs_of: str | None = None) -> None:
     """The ``--throughput`` table, ratios against the solver."""
     solver = rows["solver"]["pairs_per_s"]
-    print(f"{network}: its protocol's test pairs, one process, {os.cpu_count()} CPUs\n")
+    pairs = f"the test pairs of {pairs_of}'s protocol" if pairs_of else "its protocol's test pairs"
+    print(f"{network}: {pairs}, one process, {os.cpu_count()} CPUs\n")
     print("| way | pairs / s | vs the solver | Err_R mean (max), deg | confident | precision | solver ran |")
     print("|---|---:|---:|---|---:|---:|---:|")
     for way, row in rows.items():
@@ -412,9 +417,12 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--fragment-points", type=int, default=100_000, help="points of each fragment with --scans")
     parser.add_argument("--baseline", type=Path, help="another checkout of linereg whose command is timed beside")
     parser.add_argument("--throughput", metavar="NETWORK", help="pairs per second of solver, network, finished network")
+    parser.add_argument("--pairs-of", metavar="NETWORK", help="with --throughput: that network's protocol's test pairs")
     args = parser.parse_args(argv)
+    if args.pairs_of is not None and args.throughput is None:
+        parser.error("--pairs-of needs --throughput")
     if args.throughput is not None:
-        print_throughput(args.throughput, throughput(args.throughput, args.pairs))
+        print_throughput(args.throughput, throughput(args.throughput, args.pairs, args.pairs_of), args.pairs_of)
         return 0
     if args.baseline is not None and not (args.baseline / "train" / "register.py").is_file():
         parser.error(f"--baseline {args.baseline}: not a checkout of linereg (no train/register.py)")

@@ -36,3 +36,20 @@ def test_bench_register_scans_without_the_scans_fails_clearly(tmp_path, monkeypa
     assert exit_info.value.code == 2
     error = capsys.readouterr().err
     assert "skipping redkitchen 4->0" in error and "no scan pair was found" in error
+
+
+def test_bench_register_pairs_of_needs_the_throughput(capsys):
+    module = importlib.import_module("scripts.bench_register")
+    with pytest.raises(SystemExit) as exit_info:
+        module.main(["--pairs-of", "rpm_ours_human"])
+    assert exit_info.value.code == 2 and "--pairs-of needs --throughput" in capsys.readouterr().err
+
+
+def test_bench_register_throughput_on_pairs_the_network_never_saw(shared_data, capsys):
+    """The Human network on two of the Airplane protocol's test views: every way answers both pairs."""
+    module = importlib.import_module("scripts.bench_register")
+    rows = module.throughput("rpm_ours_human", 2, pairs_of="rpm_ours_airplane")
+    assert list(rows) == ["solver", "network", "finished network"]
+    assert all(row["pairs_per_s"] > 0 and 0.0 <= row["confident_share"] <= 1.0 for row in rows.values())
+    module.print_throughput("rpm_ours_human", rows, "rpm_ours_airplane")
+    assert "the test pairs of rpm_ours_airplane's protocol" in capsys.readouterr().out

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 from pathlib import Path
+from typing import Any
 
 import pytest
 import torch
@@ -22,6 +23,12 @@ def compose_config(
     any Hydra run, as its command composes it; ``hydra=True`` keeps the ``hydra`` node."""
     with initialize_config_dir(str(config_dir), version_base="1.3"):
         return compose(name, overrides=[*overrides], return_hydra_config=hydra)
+
+
+def compose_register(**values: Any) -> DictConfig:
+    """``configs/register/register.yaml`` with ``key=value`` overrides, as ``linereg-register`` composes it."""
+    overrides = [f"{key}={value}" for key, value in values.items()]
+    return compose_config("register", overrides, config_dir=CONFIGS / "register")
 
 
 @pytest.fixture(scope="session")

@@ -39,6 +39,7 @@ from linereg.train.benchmark import (
     run_benchmark,
     write_results,
 )
+from tests.conftest import compose_config
 
 RECORD_KEYS = {
     "pair",
@@ -219,14 +220,12 @@ def _check_folder_results(out: Path, folder: Path) -> None:
 
 
 def test_config_runs_a_folder_of_pairs(tmp_path):
-    from hydra import compose, initialize_config_dir
     from omegaconf import OmegaConf
 
     folder, out = tmp_path / "pairs", tmp_path / "out"
     _write_pair_folder(folder)
     overrides = ["benchmark=folder", f"benchmark.root={folder.resolve()}", "methods=[icp_point]"]
-    with initialize_config_dir(config_dir=str(REPO_ROOT / "configs"), version_base="1.3"):
-        config = compose(config_name="benchmark", overrides=[*overrides, f"out={out}", "progress=false"])
+    config = compose_config("benchmark", [*overrides, f"out={out}", "progress=false"])
 
     assert set(config.method_presets) >= {"icp_point", "icp_plane", "fgr", "fricp"}
     benchmark(OmegaConf.to_container(config, resolve=True))
@@ -235,10 +234,7 @@ def test_config_runs_a_folder_of_pairs(tmp_path):
 
 
 def test_every_method_preset_builds():
-    from hydra import compose, initialize_config_dir
-
-    with initialize_config_dir(config_dir=str(REPO_ROOT / "configs"), version_base="1.3"):
-        config = compose(config_name="benchmark", overrides=["benchmark=dragon"])
+    config = compose_config("benchmark", ["benchmark=dragon"])
 
     presets = config.method_presets
     assert set(build_methods(list(presets), presets)) == set(presets)

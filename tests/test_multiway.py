@@ -9,8 +9,6 @@ import sys
 
 import numpy as np
 import pytest
-from hydra import compose, initialize_config_dir
-from omegaconf import open_dict
 from scipy.spatial.transform import Rotation
 
 import linereg
@@ -20,6 +18,7 @@ from linereg.paths import REPO_ROOT
 from linereg.pointcloud import hidden_point_removal
 from linereg.registration.multiway import Edge, MultiwayOptions, place_scans
 from linereg.train.register_scans import pose_errors, read_gt_poses
+from tests.conftest import compose_register
 
 TURN_DEG = 45.0
 FAST = {"num_points": 512, "progress": False}
@@ -129,11 +128,7 @@ def test_ground_truth_from_a_conf_a_log_and_a_folder(tmp_path):
 
 
 def _compose(**overrides):
-    with initialize_config_dir(version_base="1.3", config_dir=str(REPO_ROOT / "configs" / "register")):
-        cfg = compose("register", overrides=[f"{key}={value}" for key, value in overrides.items()])
-    with open_dict(cfg):
-        cfg.progress = False
-    return cfg
+    return compose_register(**{"progress": "false", **overrides})
 
 
 def test_the_command_writes_its_outputs_in_natural_order_and_resumes(tmp_path, capsys):

@@ -11,8 +11,6 @@ import sys
 import numpy as np
 import pytest
 import torch
-from hydra import compose, initialize_config_dir
-from omegaconf import open_dict
 
 from linereg.io import read_point_cloud, read_transform, write_point_cloud, write_transform
 from linereg.metrics import registration_errors
@@ -21,6 +19,7 @@ from linereg.registration import METHODS
 from linereg.registration.solvers import start_poses
 from linereg.se3 import euler_to_rotmat, rotation_angle, rt_to_matrix
 from linereg.train.register import RegisterError, method_config, parse_init, register_files
+from tests.conftest import compose_register
 
 
 def surface(n: int, seed: int) -> np.ndarray:
@@ -126,12 +125,7 @@ def test_unknown_stage_preset_and_keys():
 
 
 def _compose(**overrides):
-    with initialize_config_dir(version_base="1.3", config_dir=str(REPO_ROOT / "configs" / "register")):
-        cfg = compose("register", overrides=[f"{k}={v}" for k, v in overrides.items()])
-    with open_dict(cfg):
-        cfg.progress = False
-        cfg.picture = False
-    return cfg
+    return compose_register(**{"progress": "false", "picture": "false", **overrides})
 
 
 def test_register_command_writes_its_outputs(tmp_path):

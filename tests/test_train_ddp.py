@@ -47,26 +47,25 @@ def _worker(rank: int, world_size: int, port: int, output_dir: str, results: str
         }
     )
     import torch.distributed as dist
-    from hydra import compose, initialize_config_dir
 
     # ``distributed.setup`` joins an initialised group as it is; this one's collectives time out.
     dist.init_process_group("gloo", rank=rank, world_size=world_size, timeout=COLLECTIVE_TIMEOUT)
 
     from linereg.train.loop import train
+    from tests.conftest import compose_config
 
-    with initialize_config_dir(str(ROOT / "configs"), version_base="1.3"):
-        cfg = compose(
-            "train",
-            overrides=[
-                "debug=tiny",
-                f"paths.root_dir={ROOT}",
-                f"paths.output_dir={output_dir}",
-                "model.num_neighbors=8",
-                "loss.num_lines=300",
-                "curriculum=none",
-                "curriculum.stages.full.epochs=1",
-            ],
-        )
+    cfg = compose_config(
+        "train",
+        [
+            "debug=tiny",
+            f"paths.root_dir={ROOT}",
+            f"paths.output_dir={output_dir}",
+            "model.num_neighbors=8",
+            "loss.num_lines=300",
+            "curriculum=none",
+            "curriculum.stages.full.epochs=1",
+        ],
+    )
     # A DistributedDataParallel wrapper freed after the group is destroyed can hang the process at
     # exit (distributed.teardown); record whether one is still alive when the group goes.
     wrappers_at_teardown = []

@@ -7,15 +7,14 @@ import json
 
 import numpy as np
 import pytest
-from hydra import compose, initialize_config_dir
 
 import linereg
 from linereg.io import write_point_cloud, write_transform
 from linereg.knn import NearestNeighbors
 from linereg.registration import trust
 from linereg.registration.poses import rotation_gap_deg
-from linereg.train import CONFIG_DIR
 from linereg.train.register import RegisterError, register_files
+from tests.conftest import compose_register
 
 
 def bumpy(count: int, seed: int) -> np.ndarray:
@@ -172,25 +171,21 @@ def test_a_shape_with_no_unique_pose_is_never_confident(shape, phrase):
         assert any(phrase in note for note in found["warnings"]), found["warnings"]
 
 
-def _compose(**values):
-    with initialize_config_dir(f"{CONFIG_DIR}/register", version_base="1.3"):
-        return compose("register", overrides=[f"{key}={value}" for key, value in values.items()])
-
-
 def test_the_command_solves_a_scale_and_reports_its_error(tmp_path, capsys):
     source, target = bumpy(2500, 1), 1000.0 * moved(bumpy(3000, 2), TRUTH)
     write_point_cloud(tmp_path / "a.ply", source)
     write_point_cloud(tmp_path / "b.ply", target)
     write_transform(tmp_path / "gt.txt", np.diag([1000.0, 1000.0, 1000.0, 1.0]) @ TRUTH)
-    rigid = _compose(source=tmp_path / "a.ply", target=tmp_path / "b.ply")
+    rigid = compose_register(source=tmp_path / "a.ply", target=tmp_path / "b.ply")
     result, report = register_files(rigid, tmp_path / "rigid")
     assert not result.confident and any("scale=true" in note for note in report["warnings"])
     assert "scale=true" in capsys.readouterr().err
     with pytest.raises(RegisterError, match="gt="):
         register_files(
-            _compose(source=tmp_path / "a.ply", target=tmp_path / "b.ply", gt=tmp_path / "gt.txt"), tmp_path / "x"
+            compose_register(source=tmp_path / "a.ply", target=tmp_path / "b.ply", gt=tmp_path / "gt.txt"),
+            tmp_path / "x",
         )
-    cfg = _compose(source=tmp_path / "a.ply", target=tmp_path / "b.ply", gt=tmp_path / "gt.txt", scale="true")
+    cfg = compose_register(source=tmp_path / "a.ply", target=tmp_path / "b.ply", gt=tmp_path / "gt.txt", scale="true")
     result, _ = register_files(cfg, tmp_path / "run")
     saved = json.loads((tmp_path / "run" / "result.json").read_text())
     assert saved["confident"] and saved["scale"] == pytest.approx(1000.0, rel=0.01)

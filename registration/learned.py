@@ -9,8 +9,9 @@
 The network starts and the solver finishes (:class:`Finish`): the network's pose
 is polished locally on the clouds in their own units and judged by register's check; only when the
 check does not trust it does the whole solver run, and its answer replaces the polished network
-pose only when the check prefers it. A wrong network then costs time, never accuracy, and a flip of
-the solver never replaces a right network pose.
+pose when the check trusts it, or when neither is trusted and it lies closer to the target
+(:func:`fits_better`). A flip of the solver never replaces a trusted network pose, and a wrong
+network costs time where the solver's answer fits better.
 """
 
 from __future__ import annotations
@@ -24,7 +25,7 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from linereg.fps import farthest_point_subset as fps
-from linereg.registration.evaluation import Assessment, assess_registration
+from linereg.registration.evaluation import assess_registration
 from linereg.registration.methods import METHODS, MethodResult, run_with_init, translation
 
 DEFAULT_SOLVER = "robust"
@@ -190,9 +191,9 @@ class Finish:
         """The network's pose ``start (4, 4)`` finished on ``src (N, 3)`` and ``tgt (M, 3)`` in their own
         units: a local polish from it (:data:`POLISH_ONLY`); when register's check
         (:func:`~linereg.registration.evaluation.assess_registration`) does not trust it, the whole
-        solver from scratch, whose answer replaces the polished one only when the check prefers it
-        (:func:`preferred`). ``info["path"]``: ``"polished network"`` or ``"solver"``, with
-        ``"solver_ran"``."""
+        solver from scratch, whose answer replaces the polished one when the check trusts it, or
+        when neither is trusted and it fits better (:func:`fits_better`). ``info["path"]``:
+        ``"polished network"`` or ``"solver"``, with ``"solver_ran"``."""
         began = time.perf_counter()
         polished = self.polish(src, tgt, start)
         judged = assess_registration(src, tgt, polished.transform)
@@ -203,7 +204,8 @@ class Finish:
         solved = self.solver(src, tgt)
         rival = assess_registration(src, tgt, solved.transform)
         info["solver_ran"] = True
-        winner, path = (solved, "solver") if preferred(rival, judged) else (polished, "polished network")
+        solver_wins = rival.confident or fits_better(src, tgt, solved.transform, polished.transform)
+        winner, path = (solved, "solver") if solver_wins else (polished, "polished network")
         return MethodResult(winner.transform, time.perf_counter() - began, {**winner.info, **info, "path": path})
 
     def polish(self, src: np.ndarray, tgt: np.ndarray, start: np.ndarray) -> MethodResult:
@@ -225,16 +227,18 @@ def _loaded(checkpoint: str, device: str):
     return model, upgrade_checkpoint(state)
 
 
-def preferred(first: Assessment, second: Assessment) -> bool:
-    """Whether register's check prefers the answer judged ``first`` to the one judged ``second``:
-    confident before not, then the larger tight fitness (the share near the target at 1.5 point
-    spacings), then the larger fitness."""
+def fits_better(src: np.ndarray, tgt: np.ndarray, first: np.ndarray, second: np.ndarray) -> bool:
+    """Whether the pose ``first (4, 4)`` maps ``src (N, 3)`` closer onto ``tgt (M, 3)`` than ``second``:
+    the larger Gaussian score at one point spacing of the target
+    (:func:`~linereg.registration.trust.soft_fitness`, the score the check's free-motion and
+    symmetry tests compare). Neither answer is trusted here; the inlier share within 3 spacings
+    favours loose wrong poses, and the tight share within 1.5 is not measured on poses that fail
+    the inlier test (chosen on the validation pairs of ``scripts/studies/finish_fallback.py``)."""
+    from linereg.knn import NearestNeighbors
+    from linereg.registration.trust import soft_fitness, spacing_of
 
-    def rank(judged: Assessment) -> tuple[bool, float, float]:
-        tight = judged.tight_fitness if np.isfinite(judged.tight_fitness) else -1.0
-        return judged.confident, tight, judged.fitness
-
-    return rank(first) > rank(second)
+    scores = soft_fitness(src, NearestNeighbors(tgt), np.stack([first, second]), spacing_of(tgt))
+    return bool(scores[0] > scores[1])
 
 
 def upgrade_checkpoint(state: dict[str, Any]) -> dict[str, Any]:

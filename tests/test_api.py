@@ -168,6 +168,34 @@ def test_a_flip_of_the_solver_never_replaces_a_right_network_pose(pair, checkpoi
     assert rotation_error_deg(result.transformation, T) < 0.1
 
 
+def test_when_neither_answer_is_trusted_the_closer_one_is_kept(pair, checkpoint, monkeypatch):
+    """A network pose 120 degrees off and the solver's right answer, both reported untrusted: the
+    solver's answer fits the target better and is kept."""
+    from linereg.registration import learned
+
+    src, tgt, T = pair
+    far = pose([120.0, 30.0, 0.0], [0.3, 0.0, 0.0]) @ T
+    monkeypatch.setattr(learned.LearnedRegistration, "predict_many", _network_answering(far))
+    monkeypatch.setattr(learned, "assess_registration", _doubting_all(learned.assess_registration))
+    result = linereg.register(src, tgt, method=checkpoint, refine=True)
+    assert result.info["solver_ran"] and result.info["path"] == "solver"
+    assert rotation_error_deg(result.transformation, T) < 0.5
+
+
+def test_fits_better_prefers_the_pose_nearer_the_target(pair):
+    from linereg.registration.learned import fits_better
+
+    src, tgt, T = pair
+    near = pose([1.0, 0.0, 0.0], [0.0, 0.0, 0.0]) @ T
+    far = pose([20.0, 0.0, 0.0], [0.0, 0.0, 0.0]) @ T
+    assert fits_better(src, tgt, T, near) and fits_better(src, tgt, near, far)
+    assert not fits_better(src, tgt, far, T)
+
+
+def _doubting_all(assess):
+    """``assess_registration`` that reports every answer not confident."""
+    return lambda *args, **kwargs: assess(*args, **kwargs)._replace(confident=False)
+
 def _doubting_the_first(assess):
     """``assess_registration`` that reports its first answer not confident (the others as they are)."""
     calls = []

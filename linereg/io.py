@@ -24,7 +24,7 @@ from typing import NamedTuple
 import numpy as np
 
 from linereg.checks import RIGID_TOLERANCE, check_points, check_transform
-from linereg.ply import read_ply, write_ply
+from linereg.ply import read_ply, write_binary, write_ply
 
 POINT_CLOUD_SUFFIXES = (".ply", ".pcd", ".obj", ".xyz", ".txt", ".pts", ".npy", ".npz")
 MESH_SUFFIXES = (".off", ".obj", ".ply", ".stl")
@@ -264,9 +264,7 @@ def _write_pcd(path: Path, columns: np.ndarray) -> None:
         f"POINTS {columns.shape[0]}",
         "DATA binary",
     ]
-    with path.open("wb") as stream:
-        stream.write(("\n".join(header) + "\n").encode("ascii"))
-        stream.write(columns.astype("<f4").tobytes())
+    write_binary(path, header, columns)
 
 
 def _write_obj(path: Path, xyz: np.ndarray, normals: np.ndarray | None) -> None:

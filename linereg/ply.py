@@ -195,6 +195,12 @@ def write_ply(path: Path, columns: np.ndarray) -> None:
         *(f"property float {name}" for name in names),
         "end_header",
     ]
+    write_binary(path, header, columns)
+
+
+def write_binary(path: Path, header: list[str], columns: np.ndarray) -> None:
+    """``header`` (ASCII lines) followed by ``columns (N, C)`` as little-endian float32 rows: the
+    body of a binary PLY or PCD file."""
     with path.open("wb") as stream:
         stream.write(("\n".join(header) + "\n").encode("ascii"))
         stream.write(columns.astype("<f4").tobytes())

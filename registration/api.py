@@ -27,6 +27,7 @@ import numpy as np
 from linereg import pretrained
 from linereg.checks import as_rigid_transform, check_points, is_tensor
 from linereg.io import PointCloud, read_point_cloud
+from linereg.knn import NearestNeighbors
 from linereg.registration.evaluation import assess_registration
 from linereg.registration.learned import LearnedRegistration
 from linereg.registration.methods import METHODS, MethodResult
@@ -133,6 +134,7 @@ def quality(
     transform: np.ndarray,
     fitness_threshold: float | None = None,
     on_surface: np.ndarray | bool | None = True,
+    target_index: NearestNeighbors | None = None,
 ) -> dict[str, Any]:
     """``fitness``, ``inlier_rmse``, ``fitness_threshold``, ``sampling_distance`` and ``confident`` of
     ``transform (4, 4)`` mapping ``src (N, 3)`` onto ``tgt (M, 3)``: the same test for every method
@@ -142,8 +144,9 @@ def quality(
         fitness_threshold: inlier distance of ``fitness`` and ``inlier_rmse`` in input units
             (``None``: 3 sampling distances of the target).
         on_surface: the target's clutter-free points (``True``: found here; ``None``: all).
+        target_index: the KD-tree of ``tgt``, when already built.
     """
-    found = assess_registration(src, tgt, transform, fitness_threshold, on_surface)._asdict()
+    found = assess_registration(src, tgt, transform, fitness_threshold, on_surface, target_index)._asdict()
     found["warnings"] = list(found["warnings"])
     return found
 
@@ -240,14 +243,15 @@ def register_clouds(
     ``initial`` first; ``on_surface``: the target's clutter-free points (``True``: found here)."""
     (src, src_normals), (tgt, tgt_normals) = source, target
     start = time.perf_counter()
-    if on_surface is True:
-        on_surface = surface_points(tgt, src)
     if initial is not None:
         src = src @ initial[:3, :3].T + initial[:3, 3]
         src_normals = None if src_normals is None else src_normals @ initial[:3, :3].T
-    seen, noise = _seen(src, src_normals, tgt, tgt_normals, on_surface)
+    indices = _Indices(NearestNeighbors(src), NearestNeighbors(tgt))
+    if on_surface is True:
+        on_surface = surface_points(tgt, src, target_index=indices.tgt, source_index=indices.src)
+    seen, noise = _seen(src, src_normals, tgt, tgt_normals, on_surface, indices)
     solve = _solve_with_scale if scale else _solve_rigid
-    result, factor, found = solve(solver, seen, src, tgt, fitness_threshold, on_surface)
+    result, factor, found = solve(solver, seen, src, tgt, _Judge(fitness_threshold, on_surface, indices.tgt))
     seconds = time.perf_counter() - start
     transform = np.asarray(result.transform, dtype=np.float64)
     warnings = [*result.info.get("warnings", ()), *found.pop("warnings")]
@@ -268,6 +272,26 @@ def register_clouds(
     )
 
 
+class _Indices(NamedTuple):
+    """The KD-trees of the source and the whole target, built once for every test of ``register``."""
+
+    src: NearestNeighbors
+    tgt: NearestNeighbors
+
+
+class _Judge(NamedTuple):
+    """How ``register`` judges an answer (:func:`quality`): the reported inlier distance, the
+    target's clutter-free points and the KD-tree of the whole target."""
+
+    fitness_threshold: float | None
+    on_surface: np.ndarray | None
+    target_index: NearestNeighbors
+
+    def __call__(self, src: np.ndarray, tgt: np.ndarray, transform: np.ndarray) -> dict[str, Any]:
+        """:func:`quality` of ``transform (4, 4)`` mapping ``src (N, 3)`` onto the whole target ``tgt (M, 3)``."""
+        return quality(src, tgt, transform, self.fitness_threshold, self.on_surface, self.target_index)
+
+
 class _Seen(NamedTuple):
     """The clouds the solver sees: the source and the target's clutter-free points, each smoothed
     when it is far noisier than the other (:mod:`~linereg.registration.noise`)."""
@@ -278,26 +302,30 @@ class _Seen(NamedTuple):
     tgt_normals: np.ndarray | None
 
 
-def _seen(src, src_normals, tgt, tgt_normals, on_surface) -> tuple[_Seen, dict[str, Any]]:
+def _seen(src, src_normals, tgt, tgt_normals, on_surface, indices: _Indices) -> tuple[_Seen, dict[str, Any]]:
     """The solver's :class:`_Seen` clouds and ``info``'s ``surface_noise`` (both clouds', in point
     spacings) and ``smoothed`` (the clouds smoothed for the solver)."""
+    src_index, tgt_index = indices
     if on_surface is not None:
-        tgt, tgt_normals = tgt[on_surface], None if tgt_normals is None else tgt_normals[on_surface]
-    noise = {"source": surface_noise(src), "target": surface_noise(tgt)}
-    smooth = dict(zip(noise, noisy_sides(noise["source"], noise["target"]), strict=True))
-    src, tgt = (smoothed(cloud) if smooth[name] else cloud for name, cloud in (("source", src), ("target", tgt)))
+        tgt, tgt_normals, tgt_index = tgt[on_surface], None if tgt_normals is None else tgt_normals[on_surface], None
+    tgt_index = tgt_index or NearestNeighbors(tgt)
+    noise = {"source": surface_noise(src, index=src_index), "target": surface_noise(tgt, index=tgt_index)}
+    smooth = noisy_sides(noise["source"], noise["target"])
+    src = smoothed(src, src_index) if smooth[0] else src
+    tgt = smoothed(tgt, tgt_index) if smooth[1] else tgt
     seen = _Seen(src, tgt, src_normals, tgt_normals)
-    return seen, {"surface_noise": noise, "smoothed": [name for name, chosen in smooth.items() if chosen]}
+    chosen = [name for name, smoothing in zip(noise, smooth, strict=True) if smoothing]
+    return seen, {"surface_noise": noise, "smoothed": chosen}
 
 
-def _solve_rigid(solver, seen: _Seen, src, tgt, fitness_threshold, on_surface):
+def _solve_rigid(solver, seen: _Seen, src, tgt, judge: _Judge):
     """``(result, 1.0, quality)``: ``solver`` on the :class:`_Seen` clouds, judged on the source
     ``src`` and the whole target ``tgt``."""
     result = solver(*seen)
-    return result, 1.0, quality(src, tgt, np.asarray(result.transform, dtype=np.float64), fitness_threshold, on_surface)
+    return result, 1.0, judge(src, tgt, np.asarray(result.transform, dtype=np.float64))
 
 
-def _solve_with_scale(solver, seen: _Seen, src, tgt, fitness_threshold, on_surface):
+def _solve_with_scale(solver, seen: _Seen, src, tgt, judge: _Judge):
     """``(result, scale, quality)`` of the similarity (:mod:`~linereg.registration.similarity`): the rigid
     ``solver`` on the :class:`_Seen` source scaled by each guess, a similarity polish, the trusted (else
     best-fitting) answer, judged on ``src`` and the whole target ``tgt``; when the fit leaves its scale
@@ -309,7 +337,7 @@ def _solve_with_scale(solver, seen: _Seen, src, tgt, fitness_threshold, on_surfa
         rigid = np.asarray(result.transform, dtype=np.float64)
         transform = similarity_polish(seen.src, seen.tgt, with_scale(rigid, guess))
         factor = scale_of(transform)
-        found = quality(factor * src, tgt, with_scale(transform, 1.0 / factor), fitness_threshold, on_surface)
+        found = judge(factor * src, tgt, with_scale(transform, 1.0 / factor))
         loose = free_scale(seen.src, seen.tgt, transform) if found["confident"] else None
         if loose is not None:
             found = {**found, "confident": False, "warnings": [*found["warnings"], loose]}
@@ -319,11 +347,11 @@ def _solve_with_scale(solver, seen: _Seen, src, tgt, fitness_threshold, on_surfa
             best = rank, MethodResult(transform=transform, seconds=result.seconds, info=info), factor, found, loose
     _, answer, factor, found, loose = best
     if loose is not None:
-        return _scale_by_spacing((answer, factor, found), *by_spacing, src, tgt, fitness_threshold, on_surface)
+        return _scale_by_spacing((answer, factor, found), *by_spacing, src, tgt, judge)
     return answer, factor, found
 
 
-def _scale_by_spacing(fitted, guess, result, src, tgt, fitness_threshold, on_surface):
+def _scale_by_spacing(fitted, guess, result, src, tgt, judge: _Judge):
     """A fit ``(answer, scale, quality)`` that leaves its scale free within
     :data:`~linereg.registration.trust.SCALE_MOVE` (a room pair whose planes slide): the rigid
     ``result`` at the point spacings' ratio ``guess`` (one sensor's points in two units) when that ratio
@@ -332,7 +360,7 @@ def _scale_by_spacing(fitted, guess, result, src, tgt, fitness_threshold, on_sur
     if abs(factor / guess - 1.0) > SCALE_MOVE:
         return fitted
     rigid = np.asarray(result.transform, dtype=np.float64)
-    held = quality(guess * src, tgt, rigid, fitness_threshold, on_surface)
+    held = judge(guess * src, tgt, rigid)
     if not held["confident"]:
         return fitted
     info = {**result.info, "scale_guess": guess, "scale_from": "point spacings"}

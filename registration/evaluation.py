@@ -158,6 +158,7 @@ def assess_registration(
     transformation: np.ndarray | None = None,
     fitness_threshold: float | None = None,
     on_surface: np.ndarray | bool | None = True,
+    target_index: NearestNeighbors | None = None,
 ) -> Assessment:
     """Fitness, inlier RMSE and every test of the module docstring of ``transformation (4, 4)``
     mapping ``source (N, 3)`` onto ``target (M, 3)``.
@@ -167,15 +168,17 @@ def assess_registration(
             (``None``: :data:`INLIER_DISTANCES` sampling distances); the tests keep their own.
         on_surface: the target's clutter-free points as ``(M,)`` bool, ``None`` for all of them,
             ``True`` to find them (:func:`~linereg.registration.trust.surface_points`).
+        target_index: the KD-tree of ``target``, when already built.
     """
     source = np.asarray(source, dtype=np.float64)
     target = np.asarray(target, dtype=np.float64)
     transform = np.eye(4) if transformation is None else np.asarray(transformation, dtype=np.float64)
     if on_surface is True:
-        on_surface = trust.surface_points(target, source)
+        on_surface = trust.surface_points(target, source, target_index=target_index)
     surface = None if on_surface is None else target[on_surface]
     test, spacing, distances, subset = inlier_test(source, target if surface is None else surface, transform)
-    verdict = trust.verdict(source, subset, target, surface, transform, passes_inlier_test(test, spacing))
+    passed = passes_inlier_test(test, spacing)
+    verdict = trust.verdict(source, subset, target, surface, transform, passed, target_index)
     warnings = _inlier_warnings(test, spacing) + verdict.warnings
     reported = test if fitness_threshold is None else _inlier_quality(distances, fitness_threshold)
     threshold = INLIER_DISTANCES * spacing if fitness_threshold is None else fitness_threshold

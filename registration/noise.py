@@ -32,27 +32,31 @@ SMOOTH_NEIGHBOURS = 48
 """Nearest points averaged by :func:`smoothed`."""
 
 
-def surface_noise(points: np.ndarray, sample: int = 1000, seed: int = 0) -> float:
+def surface_noise(
+    points: np.ndarray, sample: int = 1000, seed: int = 0, index: NearestNeighbors | None = None
+) -> float:
     """The noise of ``points (N, 3)`` off their surface, in point spacings: the median RMS residual of
     the quadric ``z = a x^2 + b xy + c y^2 + d x + e y + f`` fitted, in the frame of its principal
     axes, to each of ``sample`` random points' :data:`QUADRIC_NEIGHBOURS` nearest points (a smooth
     surface leaves a residual far below one spacing, whatever its curvature), over the median
-    distance from those points to their nearest other point (repeated points count once)."""
+    distance from those points to their nearest other point (repeated points count once).
+    ``index``: the :class:`~linereg.knn.NearestNeighbors` of ``points``, when already built."""
     count = QUADRIC_NEIGHBOURS
     if len(points) <= count:
         return 0.0
     rng = np.random.default_rng(seed)
     probe = points if len(points) <= sample else points[rng.choice(len(points), sample, replace=False)]
-    distances, neighbours = NearestNeighbors(points).query(probe, k=count)
+    distances, neighbours = (index or NearestNeighbors(points)).query(probe, k=count)
     apart = distances > 0.0
     nearest = distances[np.arange(len(probe)), np.argmax(apart, axis=1)][apart.any(axis=1)]
-    local = points[neighbours] - points[neighbours].mean(axis=1, keepdims=True)
-    _, axes = np.linalg.eigh(np.einsum("nki,nkj->nij", local, local))
-    height, x, y = np.moveaxis(np.einsum("nki,nij->nkj", local, axes), -1, 0)  # normal first
+    local = points[neighbours]
+    local = local - local.mean(axis=1, keepdims=True)
+    _, axes = np.linalg.eigh(local.transpose(0, 2, 1) @ local)
+    height, x, y = np.moveaxis(local @ axes, -1, 0)  # normal first
     design = np.stack([x * x, x * y, y * y, x, y, np.ones_like(x)], axis=-1)
-    gram = np.einsum("nki,nkj->nij", design, design) + 1e-12 * np.eye(6)
-    coefficients = np.linalg.solve(gram, np.einsum("nki,nk->ni", design, height)[..., None])[..., 0]
-    residual = height - np.einsum("nki,ni->nk", design, coefficients)
+    transposed = design.transpose(0, 2, 1)
+    coefficients = np.linalg.solve(transposed @ design + 1e-12 * np.eye(6), transposed @ height[..., None])
+    residual = height - (design @ coefficients)[..., 0]
     rms = np.sqrt(np.sum(residual**2, axis=1) / (count - 6))
     return float(np.median(rms)) / max(float(np.median(nearest)) if len(nearest) else 0.0, 1e-300)
 
@@ -65,8 +69,8 @@ def noisy_sides(source_noise: float, target_noise: float) -> tuple[bool, bool]:
     )
 
 
-def smoothed(points: np.ndarray) -> np.ndarray:
+def smoothed(points: np.ndarray, index: NearestNeighbors | None = None) -> np.ndarray:
     """``(N, 3)``: each of ``points (N, 3)`` replaced by the mean of its :data:`SMOOTH_NEIGHBOURS`
-    nearest points (itself included)."""
-    _, neighbours = NearestNeighbors(points).query(points, k=min(SMOOTH_NEIGHBOURS, len(points)))
+    nearest points (itself included); ``index``: the KD-tree of ``points``, when already built."""
+    _, neighbours = (index or NearestNeighbors(points)).query(points, k=min(SMOOTH_NEIGHBOURS, len(points)))
     return points[neighbours].mean(axis=1)

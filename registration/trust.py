@@ -24,7 +24,7 @@ from typing import NamedTuple
 import numpy as np
 
 from linereg.knn import NearestNeighbors
-from linereg.registration.poses import rodrigues, rotation_gap_deg
+from linereg.registration.poses import apply, rodrigues, rotation_gap_deg
 from linereg.registration.welsch import welsch_irls
 
 CHANCE_PLACEMENTS = 32
@@ -104,7 +104,7 @@ def chance_fitness(source: np.ndarray, target: NearestNeighbors, radius: float, 
     rotations = random_rotations(CHANCE_PLACEMENTS, rng)
     anchors = target.points[rng.integers(len(target), size=CHANCE_PLACEMENTS)]
     centred = source - source.mean(axis=0)
-    placed = np.einsum("kij,nj->kni", rotations, centred) + anchors[:, None, :]
+    placed = apply((rotations, anchors), centred)
     distances, _ = target.query(placed, distance_upper_bound=radius)
     return float(np.quantile((distances <= radius).mean(axis=1), CHANCE_QUANTILE))
 
@@ -115,7 +115,7 @@ def target_normals(points: np.ndarray, target: NearestNeighbors) -> np.ndarray:
     _, idx = target.query(points, k=NORMAL_NEIGHBOURS)
     neighbours = target.points[idx]
     centred = neighbours - neighbours.mean(axis=1, keepdims=True)
-    _, vectors = np.linalg.eigh(np.einsum("nki,nkj->nij", centred, centred))
+    _, vectors = np.linalg.eigh(centred.transpose(0, 2, 1) @ centred)
     return vectors[:, :, 0]
 
 
@@ -206,7 +206,7 @@ def turned(transform: np.ndarray, inliers: np.ndarray) -> np.ndarray:
 def tight_fitness(source: np.ndarray, target: NearestNeighbors, transforms: np.ndarray, radius: float) -> np.ndarray:
     """``(K,)`` shares of ``source (N, 3)`` points within ``radius`` of the target under each of
     ``transforms (K, 4, 4)``."""
-    moved = np.einsum("kij,nj->kni", transforms[:, :3, :3], source) + transforms[:, None, :3, 3]
+    moved = apply((transforms[:, :3, :3], transforms[:, :3, 3]), source)
     distances, _ = target.query(moved, distance_upper_bound=radius)
     return (distances <= radius).mean(axis=1)
 
@@ -234,7 +234,7 @@ def soft_fitness(source: np.ndarray, target: NearestNeighbors, transforms: np.nd
     """``(K,)`` mean Gaussian scores ``exp(-d^2 / 2 sigma^2)`` of the nearest-target distances of
     ``source (N, 3)`` under each of ``transforms (K, 4, 4)``: unlike a share within a radius it
     falls as soon as an exact fit moves."""
-    moved = np.einsum("kij,nj->kni", transforms[:, :3, :3], source) + transforms[:, None, :3, 3]
+    moved = apply((transforms[:, :3, :3], transforms[:, :3, 3]), source)
     distances, _ = target.query(moved, distance_upper_bound=3.0 * sigma)
     return np.exp(-0.5 * np.square(np.minimum(distances, 3.0 * sigma) / sigma)).mean(axis=1)
 
@@ -278,7 +278,14 @@ def scale_mismatch(source_spacing: float, target_spacing: float) -> str | None:
     return None
 
 
-def surface_points(target: np.ndarray, source: np.ndarray, sample: int = 5000, seed: int = 0) -> np.ndarray | None:
+def surface_points(
+    target: np.ndarray,
+    source: np.ndarray,
+    sample: int = 5000,
+    seed: int = 0,
+    target_index: NearestNeighbors | None = None,
+    source_index: NearestNeighbors | None = None,
+) -> np.ndarray | None:
     """``(M,)`` bool: the points of ``target (M, 3)`` sampled at least about as densely as ``source
     (N, 3)``, when they are between :data:`SURFACE_SHARE` of it (the rest is clutter), else ``None``.
 
@@ -288,13 +295,13 @@ def surface_points(target: np.ndarray, source: np.ndarray, sample: int = 5000, s
     The share, whether the target's densest points match the source's density at all
     (:data:`SURFACE_FLOOR`) and whether the rest is far sparser than they are (:data:`SURFACE_GAP`:
     a target in other units or of uneven density is not cluttered) are first estimated on a random
-    ``sample`` of the target.
+    ``sample`` of the target. ``target_index``, ``source_index``: their KD-trees, when already built.
     """
     rng = np.random.default_rng(seed)
     k = SURFACE_NEIGHBOURS + 1
     src_sample = source if len(source) <= sample else source[rng.choice(len(source), sample, replace=False)]
-    reference = float(np.median(NearestNeighbors(source).query(src_sample, k=k)[0][:, -1]))
-    index = NearestNeighbors(target)
+    reference = float(np.median((source_index or NearestNeighbors(source)).query(src_sample, k=k)[0][:, -1]))
+    index = target_index or NearestNeighbors(target)
     probe = target if len(target) <= sample else target[rng.choice(len(target), sample, replace=False)]
     density = index.query(probe, k=k)[0][:, -1]
     dense = density <= SURFACE_DENSITY * reference
@@ -342,11 +349,13 @@ def verdict(
     surface: np.ndarray | None,
     transform: np.ndarray,
     passed: bool,
+    index: NearestNeighbors | None = None,
 ) -> Verdict:
     """The tests of this module on ``transform (4, 4)`` mapping ``source (N, 3)`` (``subset (n, 3)``
     of it measured) onto ``target (M, 3)``, whose clutter-free ``surface`` (:func:`surface_points`;
     ``None``: all of it) gave the inlier test its result ``passed``. Confident: ``passed``, a tight
-    fitness above chance's (:func:`beats_chance`), no free motion and no symmetric rival."""
+    fitness above chance's (:func:`beats_chance`), no free motion and no symmetric rival. ``index``:
+    the KD-tree of ``target``, when already built."""
     surface = target if surface is None else surface
     source_spacing, target_spacing = spacing_of(source), spacing_of(surface)
     mismatch = scale_mismatch(source_spacing, target_spacing)
@@ -358,7 +367,7 @@ def verdict(
                 f"the clouds' point spacings differ {ratio:.2g}x: different units or resolutions? try scale=true"
             )
         return Verdict(False, float("nan"), float("nan"), tuple(notes))
-    index = NearestNeighbors(target)
+    index = index or NearestNeighbors(target)
     radius = TIGHT_DISTANCES * target_spacing
     own = float(tight_fitness(subset, index, transform[None], radius)[0])
     chance = chance_fitness(subset, index, radius)

@@ -45,7 +45,8 @@ and, for the finished network, how often the solver ran; ``--pairs-of <network>`
 of that network's protocol instead (pairs the timed network never trained on).
 
 With ``--baseline <checkout>`` the same command of another checkout of linereg (another version)
-is timed beside it, on the same pairs, in the same run: ``command / baseline``.
+is timed beside it, on the same pairs, in the same run, the two taking turns run by run: ``command /
+baseline``.
 
 Absolute times depend on the machine and on what else runs: compare the ratios of one run.
 """
@@ -102,14 +103,16 @@ def _env(root: Path = ROOT) -> dict[str, str]:
     return dict(os.environ, PYTHONPATH=os.pathsep.join([str(root), os.environ.get("PYTHONPATH", "")]))
 
 
-def _wall(command: list[str], cwd: Path, repeats: int, root: Path = ROOT) -> float:
-    """Median wall-clock seconds of ``command`` (must succeed) with the checkout ``root``'s code."""
-    times = []
+def _wall(command: list[str], cwd: Path, repeats: int, roots: tuple[Path, ...] = (ROOT,)) -> list[float]:
+    """Median wall-clock seconds of ``command`` (must succeed) with each checkout of ``roots``' code,
+    the checkouts taking turns run by run (a slow spell of the machine falls on all of them)."""
+    times = [[] for _ in roots]
     for _ in range(repeats):
-        start = time.perf_counter()
-        subprocess.run(command, cwd=cwd, env=_env(root), check=True, capture_output=True)
-        times.append(time.perf_counter() - start)
-    return statistics.median(times)
+        for root, spent in zip(roots, times, strict=True):
+            start = time.perf_counter()
+            subprocess.run(command, cwd=cwd, env=_env(root), check=True, capture_output=True)
+            spent.append(time.perf_counter() - start)
+    return [statistics.median(spent) for spent in times]
 
 
 _TORCH_FREE = "import sys, linereg.registration.api; assert 'torch' not in sys.modules, 'torch was imported'"
@@ -121,9 +124,10 @@ def measure(pairs, folder: Path, commands: int, compare: dict | None, baseline: 
     robust, robust_err = _solver_times(METHODS.build({"name": "robust"}), pairs)
     icp, icp_err = _solver_times(METHODS.build({"name": "icp_point"}), pairs)
     register = [sys.executable, "-m", "train.register", "source=src.ply", "target=tgt.ply"]
-    command = _wall(register, folder, commands)
-    library = _wall([sys.executable, "-c", _TORCH_FREE], folder, commands)
-    floor = _wall([sys.executable, "-c", "import torch"], folder, commands)
+    roots = (ROOT,) if baseline is None else (ROOT, baseline)
+    command, *before = _wall(register, folder, commands, roots)
+    (library,) = _wall([sys.executable, "-c", _TORCH_FREE], folder, commands)
+    (floor,) = _wall([sys.executable, "-c", "import torch"], folder, commands)
     row = {
         "solver_s": statistics.median(robust),
         "solver_max_s": max(robust),
@@ -137,8 +141,8 @@ def measure(pairs, folder: Path, commands: int, compare: dict | None, baseline: 
     row["solver_vs_icp"] = row["solver_s"] / row["icp_s"]
     row["command_vs_import_torch"] = command / floor
     if baseline is not None:
-        row["baseline_command_s"] = _wall(register, folder, commands, root=baseline)
-        row["command_vs_baseline"] = command / row["baseline_command_s"]
+        row["baseline_command_s"] = before[0]
+        row["command_vs_baseline"] = command / before[0]
     if compare is not None:
         other, other_err = _solver_times(METHODS.build(compare), pairs)
         row["compared_s"] = statistics.median(other)
@@ -178,21 +182,25 @@ class ScanPair(NamedTuple):
     truth: np.ndarray
 
 
-def _register_runs(arguments: list[str], folder: Path, repeats: int, root: Path = ROOT) -> tuple[float, dict]:
-    """Median wall-clock seconds of ``python -m train.register <arguments>`` (the checkout ``root``'s)
-    and its last ``result.json``."""
+def _register_runs(
+    arguments: list[str], folder: Path, repeats: int, roots: tuple[Path, ...] = (ROOT,)
+) -> list[tuple[float, dict]]:
+    """Per checkout of ``roots``, taking turns run by run: the median wall-clock seconds of ``python
+    -m train.register <arguments>`` with its code, and its last ``result.json``."""
     folder.mkdir()
-    times = []
+    times, reports = [[] for _ in roots], [None for _ in roots]
     for run in range(repeats):
-        out = folder / f"run{run}"
-        command = [sys.executable, "-m", "train.register", *arguments, f"hydra.run.dir={out}"]
-        start = time.perf_counter()
-        done = subprocess.run(command, cwd=folder, env=_env(root), capture_output=True, text=True)
-        times.append(time.perf_counter() - start)
-        if done.returncode != 0:
-            lines = (done.stderr or done.stdout).strip().splitlines() or ["no output"]
-            raise SystemExit(f"{' '.join(command[1:])} failed: {lines[-1]}")
-    return statistics.median(times), json.loads((out / "result.json").read_text())
+        for number, root in enumerate(roots):
+            out = folder / f"checkout{number}" / f"run{run}"
+            command = [sys.executable, "-m", "train.register", *arguments, f"hydra.run.dir={out}"]
+            start = time.perf_counter()
+            done = subprocess.run(command, cwd=folder, env=_env(root), capture_output=True, text=True)
+            times[number].append(time.perf_counter() - start)
+            if done.returncode != 0:
+                lines = (done.stderr or done.stdout).strip().splitlines() or ["no output"]
+                raise SystemExit(f"{' '.join(command[1:])} failed: {lines[-1]}")
+            reports[number] = json.loads((out / "result.json").read_text())
+    return [(statistics.median(spent), report) for spent, report in zip(times, reports, strict=True)]
 
 
 def pose_errors(transform, truth: np.ndarray) -> tuple[float, float]:
@@ -266,9 +274,10 @@ def measure_scans(pairs: list[ScanPair], folder: Path, repeats: int, baseline: P
         place = folder / f"pair{number}"
         place.mkdir()
         arguments = [f"source={pair.source}", f"target={pair.target}"]
-        command, report = _register_runs(arguments, place / "default", repeats)
-        reference, ref_report = _register_runs([*arguments, "method=fpfh_ransac"], place / "fpfh_ransac", repeats)
-        floor = _wall([sys.executable, "-c", "import torch"], place, repeats)
+        roots = (ROOT,) if baseline is None else (ROOT, baseline)
+        (command, report), *before = _register_runs(arguments, place / "default", repeats, roots)
+        ((reference, ref_report),) = _register_runs([*arguments, "method=fpfh_ransac"], place / "fpfh_ransac", repeats)
+        (floor,) = _wall([sys.executable, "-c", "import torch"], place, repeats)
         (err_r, err_t), (ref_r, ref_t) = (pose_errors(r["transform"], pair.truth) for r in (report, ref_report))
         tried = report["info"]["global_candidates"]
         rows[pair.name] = {
@@ -288,11 +297,11 @@ def measure_scans(pairs: list[ScanPair], folder: Path, repeats: int, baseline: P
             "fpfh_ransac_translation_error": ref_t,
             "fpfh_ransac_confident": ref_report["confident"],
         }
-        if baseline is not None:
-            before, before_report = _register_runs(arguments, place / "baseline", repeats, root=baseline)
+        if before:
+            ((before_s, before_report),) = before
             rows[pair.name].update(
-                baseline_command_s=before,
-                command_vs_baseline=command / before,
+                baseline_command_s=before_s,
+                command_vs_baseline=command / before_s,
                 baseline_err_r_deg=pose_errors(before_report["transform"], pair.truth)[0],
                 baseline_confident=before_report["confident"],
             )

@@ -53,3 +53,27 @@ def test_bench_register_throughput_on_pairs_the_network_never_saw(shared_data, c
     assert all(row["pairs_per_s"] > 0 and 0.0 <= row["confident_share"] <= 1.0 for row in rows.values())
     module.print_throughput("rpm_ours_human", rows, "rpm_ours_airplane")
     assert "the test pairs of rpm_ours_airplane's protocol" in capsys.readouterr().out
+
+
+def test_bench_register_times_two_checkouts_in_turns(tmp_path, monkeypatch):
+    """``--baseline``: the two checkouts' commands alternate run by run, each with its own code first
+    on the path, and each gets its own median."""
+    module = importlib.import_module("scripts.bench_register")
+    order = []
+
+    def run(command, cwd, env, **_):
+        order.append(env["PYTHONPATH"].split(":")[0])
+        if command[-1].startswith("hydra.run.dir="):
+            out = Path(command[-1].removeprefix("hydra.run.dir="))
+            out.mkdir(parents=True)
+            (out / "result.json").write_text(f'{{"root": "{order[-1]}"}}')
+        return type("Done", (), {"returncode": 0})()
+
+    monkeypatch.setattr(module.subprocess, "run", run)
+    other = tmp_path / "other"
+    found = module._register_runs(["source=a.ply"], tmp_path / "runs", 3, (module.ROOT, other))
+    assert order == [str(module.ROOT), str(other)] * 3
+    assert [report["root"] for _, report in found] == [str(module.ROOT), str(other)]
+    assert all(seconds >= 0.0 for seconds, _ in found)
+    order.clear()
+    assert len(module._wall(["python"], tmp_path, 2, (module.ROOT, other))) == 2 and len(order) == 4

@@ -121,19 +121,21 @@ def test_other_units_are_caught_rigidly_and_solved_with_scale(factor):
 def test_a_free_scale_is_fixed_by_the_point_spacings_only_within_its_free_range():
     """A fit that leaves its scale free takes the spacings' ratio only where that ratio lies within the
     free range and the rigid answer there is trusted; otherwise the fit stands."""
-    from linereg.registration.api import _scale_by_spacing
+    from linereg.knn import NearestNeighbors
+    from linereg.registration.api import _Judge, _scale_by_spacing
     from linereg.registration.methods import MethodResult
 
     source, target = bumpy(3000, 1), 2.0 * moved(bumpy(4000, 2), TRUTH)
+    judge = _Judge(None, None, NearestNeighbors(target))
     fitted = (MethodResult(np.eye(4), 0.0, {}), 1.95, {"confident": False})
     truth = np.diag([2.0, 2.0, 2.0, 1.0]) @ TRUTH
     rigid = MethodResult(truth @ np.diag([0.5, 0.5, 0.5, 1.0]), 0.0, {})  # maps the source x2 onto the target
-    held, factor, found = _scale_by_spacing(fitted, 2.0, rigid, source, target, None, None)
+    held, factor, found = _scale_by_spacing(fitted, 2.0, rigid, source, target, judge)
     assert factor == 2.0 and found["confident"] and held.info["scale_from"] == "point spacings"
     assert np.allclose(held.transform, truth)
-    assert _scale_by_spacing(fitted, 2.1, rigid, source, target, None, None) is fitted  # outside the free range
+    assert _scale_by_spacing(fitted, 2.1, rigid, source, target, judge) is fitted  # outside the free range
     wrong = MethodResult(np.linalg.inv(TRUTH), 0.0, {})
-    assert _scale_by_spacing(fitted, 2.0, wrong, source, target, None, None) is fitted  # not trusted there
+    assert _scale_by_spacing(fitted, 2.0, wrong, source, target, judge) is fitted  # not trusted there
 
 
 def test_a_mirror_image_is_not_trusted():

@@ -66,20 +66,26 @@ def load(shared: Path) -> dict:
     return {"clouds": clouds, "published": published}
 
 
-def refined_poses(data: dict) -> dict[str, np.ndarray]:
-    """``0 <- 4``, ``4 <- 6``, ``0 <- 6`` refined from the published poses, and the chain."""
+def refined_poses(data: dict, links: dict = LINKS) -> dict[str, np.ndarray]:
+    """The poses of ``links`` (``0 <- 4``, ``4 <- 6``, ``0 <- 6``) refined from the published poses,
+    and, when all three are refined, the chain ``0 <- 4 <- 6``."""
     clouds, published = data["clouds"], data["published"]
     # point-to-plane ICP ignores the normals' sign: orienting them to a point skips the slow consistent pass
     origin = np.zeros(3)
-    normals = {
-        name: estimate_normals(clouds[name], k=30, orient_towards=origin) for name in ("fragment 0", "fragment 4")
-    }
+    targets = dict.fromkeys(target for _, target, _ in links.values())
+    normals = {name: estimate_normals(clouds[name], k=30, orient_towards=origin) for name in targets}
     refined = {
         name: refine_pose(clouds[source], clouds[target], normals[target], published[key], VOXEL)
-        for name, (source, target, key) in LINKS.items()
+        for name, (source, target, key) in links.items()
     }
-    refined["0 <- 4 <- 6"] = refined["0 <- 4"] @ refined["4 <- 6"]
+    if links.keys() == LINKS.keys():
+        refined["0 <- 4 <- 6"] = refined["0 <- 4"] @ refined["4 <- 6"]
     return refined
+
+
+def refined_demo_pose(shared: Path) -> np.ndarray:
+    """``(4, 4)``: the GeoTransformer demo pair's published pose refined onto the whole fragment 0."""
+    return refined_poses(load(shared), {"0 <- 6": LINKS["0 <- 6"]})["0 <- 6"]
 
 
 def pose_table(data: dict, refined: dict[str, np.ndarray]) -> list[str]:

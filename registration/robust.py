@@ -259,6 +259,16 @@ class RobustRegistration:
         self.progress = progress
         self._started = 0.0
 
+    @classmethod
+    def from_register_settings(cls, settings: Mapping[str, Any]) -> dict[str, Any]:
+        """This method's config from ``linereg-register``'s settings (``configs/register/register.yaml``):
+        its ``robust`` block of :class:`~linereg.registration.robust_options.RobustOptions` names."""
+        if settings.get("loss") is not None:
+            raise ValueError(f"loss={settings['loss']} needs method=adam_loss (the robust solver has its own losses)")
+        options = dict(settings.get("robust") or {})
+        sizes = {"num_points": settings["num_points"], "progress": settings["progress"]}
+        return {"name": "robust", "options": options, **sizes}
+
     def _stage(self, text: str) -> None:
         """A progress line for a stage that starts :data:`PROGRESS_AFTER` seconds or more into the run."""
         elapsed = time.perf_counter() - self._started

@@ -214,6 +214,22 @@ class AdamRegistration(_Solver):
         self.monitor = monitor
         self.center = center
 
+    @classmethod
+    def from_register_settings(cls, settings: Mapping[str, Any]) -> dict[str, Any]:
+        """This method's config from ``linereg-register``'s settings (``configs/register/register.yaml``):
+        ``stages``, or one stage of ``loss`` with ``iterations`` and ``lr``; ``starts``, ``start_angle_deg``."""
+        stages = settings["stages"]
+        if settings.get("loss") is not None:
+            loss = {"name": settings["loss"]} if isinstance(settings["loss"], str) else dict(settings["loss"])
+            stages = [{"loss": loss, "iterations": settings["iterations"], "lr": settings["lr"]}]
+        return {
+            "name": "adam_loss",
+            "stages": stages,
+            "starts": settings["starts"],
+            "start_angle_deg": settings["start_angle_deg"],
+            **_common_settings(settings),
+        }
+
     def _optimise(self, src_t, tgt_t, unscale):
         poses = self.start_poses.clone()
         curve: list[float] = []
@@ -321,6 +337,13 @@ class IRLSRegistration(_Solver):
         self.monitor = monitor
         self.center = center
 
+    @classmethod
+    def from_register_settings(cls, settings: Mapping[str, Any]) -> dict[str, Any]:
+        """This method's config from ``linereg-register``'s settings (``configs/register/register.yaml``):
+        its ``svd`` block (``iterations`` and :class:`~linereg.losses.line_intersection.LineMetricOptions`)."""
+        svd = settings["svd"]
+        return {"name": "svd_irls", "iterations": svd["iterations"], **svd["options"], **_common_settings(settings)}
+
     def _optimise(self, src_t, tgt_t, unscale):
         generator = torch.Generator().manual_seed(self.seed)
         pose = torch.eye(4, dtype=torch.float64)
@@ -342,5 +365,10 @@ class IRLSRegistration(_Solver):
 
 
 # The constructors' defaults are the methods' defaults: the classes themselves are the builders.
+def _common_settings(settings: Mapping[str, Any]) -> dict[str, Any]:
+    """The settings of ``linereg-register`` that every torch solver takes."""
+    return {"num_points": settings["num_points"], "seed": settings["seed"], "progress": settings["progress"]}
+
+
 METHODS.register("adam_loss")(AdamRegistration)
 METHODS.register("svd_irls")(IRLSRegistration)

@@ -173,6 +173,25 @@ def test_register_with_a_chosen_loss_and_the_svd_solver(tmp_path):
         assert np.isfinite(np.array(report["transform"])).all() and report["method"]["name"] == overrides["method"]
 
 
+def test_each_method_builds_its_config_from_the_command_settings(monkeypatch):
+    """``method_config`` asks the method's own type (``from_register_settings``), with no list of
+    method names: a newly registered method is read the same way; one without the hook goes as a name."""
+    from linereg.registration import METHODS
+
+    class Echo:
+        @classmethod
+        def from_register_settings(cls, settings):
+            return {"name": "echo", "points": settings["num_points"], "lines": settings["svd"]["options"]["num_lines"]}
+
+    monkeypatch.setitem(METHODS._builders, "echo", Echo)
+    assert method_config(_compose(method="echo", num_points=77)) == {"name": "echo", "points": 77, "lines": 8000}
+    assert method_config(_compose(method="icp_point")) == "icp_point"
+    adam = method_config(_compose(method="adam_loss", loss="chamfer", iterations=9, lr=0.5, starts=1))
+    assert adam["stages"] == [{"loss": {"name": "chamfer"}, "iterations": 9, "lr": 0.5}] and adam["starts"] == 1
+    svd = method_config(_compose(method="svd_irls", **{"svd.iterations": 7, "seed": 3}))
+    assert (svd["iterations"], svd["num_lines"], svd["variant"], svd["seed"]) == (7, 8000, "linereg", 3)
+
+
 @pytest.mark.parametrize(
     ("make", "message"),
     [

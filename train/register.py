@@ -134,30 +134,20 @@ def read_cloud(path: Any, argument: str):
 
 
 def method_config(cfg: DictConfig) -> dict[str, Any] | str:
-    """The registration method of a ``register.yaml`` config: ``robust``, ``adam_loss`` and
-    ``svd_irls`` as a method config with the config's settings; any other ``method`` (a registered
-    name, a pretrained name or a checkpoint) as it is."""
-    if cfg.method == "robust":
-        if cfg.loss is not None:
-            raise RegisterError(f"loss={cfg.loss} needs method=adam_loss (the robust solver has its own losses)")
-        options = OmegaConf.to_container(cfg.robust) if cfg.robust else {}
-        return {"name": "robust", "options": options, "num_points": cfg.num_points, "progress": cfg.progress}
-    common = {"num_points": cfg.num_points, "seed": cfg.seed, "progress": cfg.progress}
-    if cfg.method == "svd_irls":
-        options = OmegaConf.to_container(cfg.svd.options)
-        return {"name": "svd_irls", "iterations": cfg.svd.iterations, **options, **common}
-    if cfg.method == "adam_loss":
-        starts = {"starts": cfg.starts, "start_angle_deg": cfg.start_angle_deg}
-        return {"name": "adam_loss", "stages": _adam_stages(cfg), **starts, **common}
-    return str(cfg.method)
+    """The registration method of a ``register.yaml`` config: a registered method that reads the
+    command's settings (``from_register_settings``: ``robust``, ``adam_loss``, ``svd_irls``) as the
+    method config it builds from them; any other ``method`` (a registered name, a pretrained name or
+    a checkpoint) as it is."""
+    from linereg.registration import METHODS
 
-
-def _adam_stages(cfg: DictConfig) -> list[dict[str, Any]] | str:
-    """The ``adam_loss`` schedule: one stage of ``loss`` when given, else ``stages``."""
-    if cfg.loss is not None:
-        loss = {"name": cfg.loss} if isinstance(cfg.loss, str) else OmegaConf.to_container(cfg.loss)
-        return [{"loss": loss, "iterations": cfg.iterations, "lr": cfg.lr}]
-    return cfg.stages if isinstance(cfg.stages, str) else OmegaConf.to_container(cfg.stages)
+    name = str(cfg.method)
+    reader = getattr(METHODS.get(name), "from_register_settings", None) if name in METHODS else None
+    if reader is None:
+        return name
+    try:
+        return reader(OmegaConf.to_container(cfg))
+    except ValueError as error:
+        raise RegisterError(str(error)) from error
 
 
 def register_files(cfg: DictConfig, out_dir: Path) -> tuple[Any, dict[str, Any]]:

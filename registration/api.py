@@ -28,7 +28,7 @@ from linereg import pretrained
 from linereg.checks import as_rigid_transform, check_points, is_tensor
 from linereg.io import PointCloud, read_point_cloud
 from linereg.knn import NearestNeighbors
-from linereg.registration.evaluation import assess_registration
+from linereg.registration.evaluation import Assessment, assess_registration
 from linereg.registration.learned import LearnedRegistration
 from linereg.registration.methods import METHODS, MethodResult
 from linereg.registration.noise import noisy_sides, smoothed, surface_noise
@@ -251,11 +251,12 @@ def register_clouds(
         on_surface = surface_points(tgt, src, target_index=indices.tgt, source_index=indices.src)
     seen, noise = _seen(src, src_normals, tgt, tgt_normals, on_surface, indices)
     solve = _solve_with_scale if scale else _solve_rigid
-    result, factor, found = solve(solver, seen, src, tgt, _Judge(fitness_threshold, on_surface, indices.tgt))
+    result, factor, judged = solve(solver, seen, src, tgt, _Judge(fitness_threshold, on_surface, indices.tgt))
     seconds = time.perf_counter() - start
     transform = np.asarray(result.transform, dtype=np.float64)
-    warnings = [*result.info.get("warnings", ()), *found.pop("warnings")]
-    info = {"method": description, **result.info, **found, "warnings": warnings, **noise}
+    measured = {key: getattr(judged, key) for key in _MEASURED}
+    warnings = [*result.info.get("warnings", ()), *judged.warnings]
+    info = {"method": description, **result.info, **measured, "warnings": warnings, **noise}
     if on_surface is not None:
         info["clutter"] = float(1.0 - on_surface.mean())
     if initial is not None:
@@ -263,9 +264,9 @@ def register_clouds(
         transform = transform @ initial
     return RegistrationResult(
         transformation=transform,
-        fitness=float(info.pop("fitness")),
-        inlier_rmse=float(info.pop("inlier_rmse")),
-        confident=bool(info.pop("confident")),
+        fitness=judged.fitness,
+        inlier_rmse=judged.inlier_rmse,
+        confident=judged.confident,
         seconds=seconds,
         info=info,
         scale=factor,
@@ -287,9 +288,15 @@ class _Judge(NamedTuple):
     on_surface: np.ndarray | None
     target_index: NearestNeighbors
 
-    def __call__(self, src: np.ndarray, tgt: np.ndarray, transform: np.ndarray) -> dict[str, Any]:
-        """:func:`quality` of ``transform (4, 4)`` mapping ``src (N, 3)`` onto the whole target ``tgt (M, 3)``."""
-        return quality(src, tgt, transform, self.fitness_threshold, self.on_surface, self.target_index)
+    def __call__(self, src: np.ndarray, tgt: np.ndarray, transform: np.ndarray) -> Assessment:
+        """The :class:`~linereg.registration.evaluation.Assessment` of ``transform (4, 4)`` mapping
+        ``src (N, 3)`` onto the whole target ``tgt (M, 3)``."""
+        return assess_registration(src, tgt, transform, self.fitness_threshold, self.on_surface, self.target_index)
+
+
+_MEASURED = ("fitness_threshold", "sampling_distance", "tight_fitness", "chance_fitness")
+"""The fields of the check's :class:`~linereg.registration.evaluation.Assessment` that
+:class:`RegistrationResult` keeps in ``info`` (the others are its own fields)."""
 
 
 class _Seen(NamedTuple):
@@ -319,14 +326,14 @@ def _seen(src, src_normals, tgt, tgt_normals, on_surface, indices: _Indices) -> 
 
 
 def _solve_rigid(solver, seen: _Seen, src, tgt, judge: _Judge):
-    """``(result, 1.0, quality)``: ``solver`` on the :class:`_Seen` clouds, judged on the source
+    """``(result, 1.0, assessment)``: ``solver`` on the :class:`_Seen` clouds, judged on the source
     ``src`` and the whole target ``tgt``."""
     result = solver(*seen)
     return result, 1.0, judge(src, tgt, np.asarray(result.transform, dtype=np.float64))
 
 
 def _solve_with_scale(solver, seen: _Seen, src, tgt, judge: _Judge):
-    """``(result, scale, quality)`` of the similarity (:mod:`~linereg.registration.similarity`): the rigid
+    """``(result, scale, assessment)`` of the similarity (:mod:`~linereg.registration.similarity`): the rigid
     ``solver`` on the :class:`_Seen` source scaled by each guess, a similarity polish, the trusted (else
     best-fitting) answer, judged on ``src`` and the whole target ``tgt``; when the fit leaves its scale
     free, the rigid answer at the point spacings' ratio (:func:`_scale_by_spacing`)."""
@@ -338,10 +345,10 @@ def _solve_with_scale(solver, seen: _Seen, src, tgt, judge: _Judge):
         transform = similarity_polish(seen.src, seen.tgt, with_scale(rigid, guess))
         factor = scale_of(transform)
         found = judge(factor * src, tgt, with_scale(transform, 1.0 / factor))
-        loose = free_scale(seen.src, seen.tgt, transform) if found["confident"] else None
+        loose = free_scale(seen.src, seen.tgt, transform) if found.confident else None
         if loose is not None:
-            found = {**found, "confident": False, "warnings": [*found["warnings"], loose]}
-        rank = (found["confident"], found["fitness"])
+            found = found._replace(confident=False, warnings=(*found.warnings, loose))
+        rank = (found.confident, found.fitness)
         if best is None or rank > best[0]:
             info = {**result.info, "scale_guess": guess, "scale_from": "fit"}
             best = rank, MethodResult(transform=transform, seconds=result.seconds, info=info), factor, found, loose
@@ -352,7 +359,7 @@ def _solve_with_scale(solver, seen: _Seen, src, tgt, judge: _Judge):
 
 
 def _scale_by_spacing(fitted, guess, result, src, tgt, judge: _Judge):
-    """A fit ``(answer, scale, quality)`` that leaves its scale free within
+    """A fit ``(answer, scale, assessment)`` that leaves its scale free within
     :data:`~linereg.registration.trust.SCALE_MOVE` (a room pair whose planes slide): the rigid
     ``result`` at the point spacings' ratio ``guess`` (one sensor's points in two units) when that ratio
     lies within the free range and register's check trusts the rigid answer there, else ``fitted``."""
@@ -361,7 +368,7 @@ def _scale_by_spacing(fitted, guess, result, src, tgt, judge: _Judge):
         return fitted
     rigid = np.asarray(result.transform, dtype=np.float64)
     held = judge(guess * src, tgt, rigid)
-    if not held["confident"]:
+    if not held.confident:
         return fitted
     info = {**result.info, "scale_guess": guess, "scale_from": "point spacings"}
     return MethodResult(transform=with_scale(rigid, guess), seconds=result.seconds, info=info), guess, held

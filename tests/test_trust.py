@@ -131,7 +131,7 @@ def test_a_free_scale_is_fixed_by_the_point_spacings_only_within_its_free_range(
     truth = np.diag([2.0, 2.0, 2.0, 1.0]) @ TRUTH
     rigid = MethodResult(truth @ np.diag([0.5, 0.5, 0.5, 1.0]), 0.0, {})  # maps the source x2 onto the target
     held, factor, found = _scale_by_spacing(fitted, 2.0, rigid, source, target, judge)
-    assert factor == 2.0 and found["confident"] and held.info["scale_from"] == "point spacings"
+    assert factor == 2.0 and found.confident and held.info["scale_from"] == "point spacings"
     assert np.allclose(held.transform, truth)
     assert _scale_by_spacing(fitted, 2.1, rigid, source, target, judge) is fitted  # outside the free range
     wrong = MethodResult(np.linalg.inv(TRUTH), 0.0, {})

@@ -17,6 +17,7 @@ Every parser raises ``ValueError`` naming the file and the line for malformed co
 from __future__ import annotations
 
 import json
+from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -284,3 +285,15 @@ def read_conf(path: str | Path) -> dict[str, np.ndarray]:
     if not poses:
         raise ValueError(f"{path}: no 'bmesh <file> tx ty tz qx qy qz qw' line")
     return poses
+
+
+def write_conf(path: str | Path, poses: Mapping[str, np.ndarray]) -> None:
+    """Write ``{file name: (4, 4) scan-to-common transform}`` as a Stanford alignment file, one
+    ``bmesh <file> tx ty tz qx qy qz qw`` line each (:func:`read_conf` reads it back)."""
+    lines = []
+    for name, pose in poses.items():
+        pose = np.asarray(pose, dtype=np.float64)
+        quaternion = roma.rotmat_to_unitquat(torch.from_numpy(np.ascontiguousarray(pose[:3, :3].T))).numpy()
+        values = " ".join(f"{value:.9g}" for value in (*pose[:3, 3], *quaternion))
+        lines.append(f"bmesh {name} {values}")
+    Path(path).write_text("\n".join(lines) + "\n")

@@ -495,6 +495,29 @@ def test_seven_scenes_layout(tmp_path, camera_poses):
         build_dataset({"name": "rgbd_sequence", "root": str(tmp_path), "frame_range": [4, 2]})
 
 
+def test_exported_frames_are_a_scan_folder_labelled_by_their_camera_poses(tmp_path, camera_poses):
+    """``scripts/export_rgbd_scans.py``: every STEP-th frame as a PLY and the camera poses as a
+    ``.conf`` that ``scan_folder`` reads back exactly (``write_conf`` inverts ``read_conf``)."""
+    from linereg.datasets.formats import read_conf
+    from scripts.export_rgbd_scans import export_frames, main
+
+    scene, sequence = _room(), tmp_path / "sequence"
+    sequence.mkdir()
+    for k, pose in enumerate(camera_poses):
+        Image.fromarray(_render_depth(scene, pose, 1000.0)).save(sequence / f"frame-{2 * k:06d}.depth.png")
+        np.savetxt(sequence / f"frame-{2 * k:06d}.pose.txt", pose)
+    np.savetxt(sequence / "camera-intrinsics.txt", [[FX, 0, CX], [0, FY, CY], [0, 0, 1]])
+    files = export_frames(sequence, tmp_path / "scans", (0, 5, 2), pixel_stride=1)
+    assert [file.name for file in files] == ["scan_0.ply", "scan_2.ply", "scan_4.ply"]
+    written = read_conf(tmp_path / "scans" / "poses.conf")
+    assert all(np.allclose(written[f"scan_{2 * k}.ply"], pose, atol=1e-7) for k, pose in enumerate(camera_poses))
+    folder = {"name": "scan_folder", "root": str(tmp_path / "scans"), "poses": "poses.conf"}
+    pair = build_dataset({**folder, "num_points": None, "dense_points": None, "half_extent": None})[1]
+    _assert_frames_aligned(pair)
+    assert main([str(sequence), str(tmp_path / "one"), "--frames", "0", "2", "2"]) == 2  # one frame only
+    assert main([str(tmp_path / "missing"), str(tmp_path / "out")]) == 2
+
+
 def test_tum_layout(tmp_path, camera_poses):
     scene = _room()
     (tmp_path / "depth").mkdir()

@@ -51,10 +51,15 @@ def test_the_start_networks_settings_are_kept_unless_given(start_network, tmp_pa
     assert resolved["dataset"]["half_extent"] == 2.0 and resolved["trainer"]["evaluate_checkpoint"] == "best"
     assert any(note.startswith("trainer.num_points=48 (as ") and "the config said 64" in note for note in notes)
     given = tiny_config(tmp_path, *SMALL_RUN, *SCAN_FOLDER, f"dataset.root={folder}", f"init_from={start}", debug=None)
-    notes = keep_start_settings(given, overrides=["trainer.num_points=64", "+iterate.rule=last", "seed=1"])
+    chosen = ["dataset=scan_folder", "trainer.num_points=64", "+iterate.rule=last", "seed=1"]
+    notes = keep_start_settings(given, overrides=chosen)
     assert given.trainer.num_points == 64 and given.iterate.rule == "last" and given.iterate.keep_fraction == 0.8
+    assert given.dataset.half_extent == 2.0  # choosing the dataset's file sets none of its keys
     assert any(note.startswith("trainer.num_points=64 from the command line") for note in notes)
-    assert given_keys(["a.b=1", "++c=2", "~d", "e=f=g"]) == {"a.b", "c", "e"}
+    assert given_keys(["a.b=1", "++c=2", "~d", "e=f=g", "iterate={rule: last}"]) == {"a.b", "c", "e", "iterate.*"}
+    mapped = tiny_config(tmp_path, *SMALL_RUN, *SCAN_FOLDER, f"dataset.root={folder}", f"init_from={start}", debug=None)
+    keep_start_settings(mapped, overrides=["iterate={rule: last, keep_fraction: 1.0}"])
+    assert mapped.iterate.keep_fraction == 1.0 and mapped.trainer.num_points == 48
 
 
 def test_the_checkpoint_is_chosen_by_the_check_without_reading_a_pose(start_network, tmp_path, monkeypatch):

@@ -41,12 +41,15 @@ def start_settings(start: Mapping[str, Any], dataset: Mapping[str, Any]) -> dict
 
 
 def given_keys(overrides: Sequence[str] | None) -> set[str]:
-    """The dotted keys set by command-line overrides (``+key=...``, ``key=...``; none for ``~key``)."""
+    """The dotted keys set by command-line overrides (``+key=...``, ``key=...``; none for ``~key``).
+    A key given a mapping (``key={...}``) sets its children too and ends in ``.*``; ``dataset=scan_folder``
+    chooses a config file and sets none of ``dataset``'s keys itself."""
     keys = set()
     for override in overrides or ():
-        key = override.split("=", 1)[0].lstrip("+")
+        key, _, value = override.partition("=")
+        key = key.lstrip("+")
         if "=" in override and not key.startswith("~"):
-            keys.add(key)
+            keys.add(f"{key}.*" if value.lstrip().startswith("{") else key)
     return keys
 
 
@@ -68,7 +71,7 @@ def keep_start_settings(cfg: DictConfig, overrides: Sequence[str] | None) -> lis
         current = OmegaConf.select(cfg, key)
         if current == value:
             continue
-        if key in given or any(key.startswith(f"{parent}.") for parent in given):
+        if key in given or any(key.startswith(parent[:-1]) for parent in given if parent.endswith(".*")):
             notes.append(f"{key}={current!r} from the command line; {name} was trained with {value!r}")
             continue
         with open_dict(cfg):

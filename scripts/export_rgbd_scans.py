@@ -7,7 +7,8 @@ One PLY per chosen frame, ``scan_<number>.ply``: the depth image back-projected 
 coordinates in metres). Where the sequence has camera poses, ``poses.conf`` holds each frame's
 camera-to-world pose (a Stanford alignment file): ``dataset.poses=poses.conf`` labels the test
 split of a fine-tuning run with it, and nothing else reads it. ``--frames START STOP STEP`` takes
-the frames numbered ``START, START + STEP, ...`` below ``STOP``.
+the frames numbered ``START, START + STEP, ...`` below ``STOP``; ``--intrinsics FX FY CX CY`` a
+sequence's camera where it ships no intrinsics file.
 """
 
 from __future__ import annotations
@@ -24,7 +25,12 @@ from linereg.io import write_point_cloud
 
 
 def export_frames(
-    root: Path, out: Path, frames: tuple[int, int, int], pixel_stride: int = 2, max_depth: float | None = None
+    root: Path,
+    out: Path,
+    frames: tuple[int, int, int],
+    pixel_stride: int = 2,
+    max_depth: float | None = None,
+    intrinsics: list[float] | None = None,
 ) -> list[Path]:
     """Write the chosen frames of the sequence ``root`` into ``out`` (see the module docstring);
     the scan files in frame order.
@@ -36,6 +42,7 @@ def export_frames(
     if step < 1 or stop - start <= step:
         raise ValueError(f"--frames {start} {stop} {step}: at least 2 frames are needed (STEP >= 1)")
     settings = {"frame_gap": step, "frame_range": [start, stop], "pixel_stride": pixel_stride, "max_depth": max_depth}
+    settings["intrinsics"] = intrinsics
     sequence = build_dataset({"name": "rgbd_sequence", "root": str(root), **settings})
     members = {frame.number: frame for pair in sequence.pairs for frame in pair}
     chosen = [members[number] for number in sorted(members) if (number - start) % step == 0]
@@ -58,9 +65,18 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--frames", type=int, nargs=3, default=(0, 10**9, 1), metavar=("START", "STOP", "STEP"))
     parser.add_argument("--pixel-stride", type=int, default=2, help="back-project every n-th pixel (2)")
     parser.add_argument("--max-depth", type=float, default=None, help="drop points farther than this (metres)")
+    parser.add_argument(
+        "--intrinsics",
+        type=float,
+        nargs=4,
+        default=None,
+        metavar=("FX", "FY", "CX", "CY"),
+        help="pinhole intrinsics in pixels (default: the sequence's own file, else its layout's)",
+    )
     args = parser.parse_args(argv)
     try:
-        files = export_frames(args.root, args.out, tuple(args.frames), args.pixel_stride, args.max_depth)
+        frames = tuple(args.frames)
+        files = export_frames(args.root, args.out, frames, args.pixel_stride, args.max_depth, args.intrinsics)
     except (ValueError, FileNotFoundError) as error:
         print(f"export_rgbd_scans: {error}", file=sys.stderr)
         return 2

@@ -25,8 +25,10 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from linereg.fps import farthest_point_subset as fps
+from linereg.knn import NearestNeighbors
 from linereg.registration.evaluation import assess_registration
 from linereg.registration.methods import METHODS, MethodResult, run_with_init, translation
+from linereg.registration.trust import soft_fitness, spacing_of, surface_points
 
 DEFAULT_SOLVER = "robust"
 
@@ -196,13 +198,15 @@ class Finish:
         ``"polished network"`` or ``"solver"``, with ``"solver_ran"``."""
         began = time.perf_counter()
         polished = self.polish(src, tgt, start)
-        judged = assess_registration(src, tgt, polished.transform)
+        index = NearestNeighbors(tgt)  # one KD-tree and one clutter test of the target for both checks
+        surface = surface_points(tgt, src, target_index=index)
+        judged = assess_registration(src, tgt, polished.transform, on_surface=surface, target_index=index)
         info = {"solver_ran": False, "polished_confident": judged.confident}
         if judged.confident:
             seconds = time.perf_counter() - began
             return MethodResult(polished.transform, seconds, {**polished.info, **info, "path": "polished network"})
         solved = self.solver(src, tgt)
-        rival = assess_registration(src, tgt, solved.transform)
+        rival = assess_registration(src, tgt, solved.transform, on_surface=surface, target_index=index)
         info["solver_ran"] = True
         solver_wins = rival.confident or fits_better(src, tgt, solved.transform, polished.transform)
         winner, path = (solved, "solver") if solver_wins else (polished, "polished network")
@@ -234,9 +238,6 @@ def fits_better(src: np.ndarray, tgt: np.ndarray, first: np.ndarray, second: np.
     symmetry tests compare). Neither answer is trusted here; the inlier share within 3 spacings
     favours loose wrong poses, and the tight share within 1.5 is not measured on poses that fail
     the inlier test (chosen on the validation pairs of ``scripts/studies/finish_fallback.py``)."""
-    from linereg.knn import NearestNeighbors
-    from linereg.registration.trust import soft_fitness, spacing_of
-
     scores = soft_fitness(src, NearestNeighbors(tgt), np.stack([first, second]), spacing_of(tgt))
     return bool(scores[0] > scores[1])
 

@@ -364,11 +364,11 @@ class IRLSRegistration(_Solver):
         return pose, {"loss_curve": curve, **shown}
 
 
-# The constructors' defaults are the methods' defaults: the classes themselves are the builders.
 def _common_settings(settings: Mapping[str, Any]) -> dict[str, Any]:
     """The settings of ``linereg-register`` that every torch solver takes."""
     return {"num_points": settings["num_points"], "seed": settings["seed"], "progress": settings["progress"]}
 
 
+# The constructors' defaults are the methods' defaults: the classes themselves are the builders.
 METHODS.register("adam_loss")(AdamRegistration)
 METHODS.register("svd_irls")(IRLSRegistration)

@@ -13,8 +13,10 @@ plane-to-plane steps (:mod:`~linereg.registration.planes`) and their settings
 first needed (a name not yet registered, or a listing), so that importing this package does not
 import torch. :func:`register` runs any of them, or a trained network, on arrays, tensors,
 Open3D clouds or files, applies an initial guess (:func:`run_with_init`) and scores every result
-alike (:func:`~linereg.registration.evaluation.assess_registration`); :func:`register_scans`
-(:mod:`~linereg.registration.multiway`) places many scans in one frame through a pose graph.
+alike (:func:`~linereg.registration.evaluation.assess_registration`); :func:`register_many`
+(:mod:`~linereg.registration.many`) registers many pairs and :func:`register_scans`
+(:mod:`~linereg.registration.multiway`) places many scans in one frame through a pose graph, both
+imported on first use (one pair's registration does not need them).
 """
 
 from typing import Any
@@ -22,9 +24,7 @@ from typing import Any
 from linereg.registration import robust
 from linereg.registration.api import RegistrationResult, register
 from linereg.registration.learned import LearnedRegistration
-from linereg.registration.many import register_many
 from linereg.registration.methods import METHODS, Method, MethodResult, run_centered, run_with_init
-from linereg.registration.multiway import MultiwayOptions, MultiwayResult, register_scans
 
 __all__ = [
     "METHODS",
@@ -45,10 +45,21 @@ __all__ = [
 ]
 
 
+_LAZY = {
+    "register_many": "many",
+    "register_scans": "multiway",
+    "MultiwayOptions": "multiway",
+    "MultiwayResult": "multiway",
+}
+"""Members imported on first use, and their modules: what one pair's registration does not need."""
+
+
 def __getattr__(name: str) -> Any:
-    """The torch-based members, imported on first use."""
+    """The torch-based modules and :data:`_LAZY`'s members, imported on first use."""
     import importlib
 
     if name in ("solvers", "baselines"):
         return importlib.import_module(f"linereg.registration.{name}")
+    if name in _LAZY:
+        return getattr(importlib.import_module(f"linereg.registration.{_LAZY[name]}"), name)
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

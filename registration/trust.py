@@ -41,7 +41,7 @@ FREE_MOVE = 0.2
 """The size of that move: a rotation of 0.2 rad (11 degrees) or a shift of 0.2 RMS radii of the overlap."""
 RIVAL_STEPS = 8
 """Welsch IRLS steps that polish each turned answer (3 to 1 point spacings) ..."""
-RIVAL_POINTS = 512
+RIVAL_POINTS = 256
 """... on this many of the measured source points; the best-fitting one then gets
 :data:`RIVAL_SETTLE` more steps on all of them."""
 RIVAL_SETTLE = 2

@@ -45,8 +45,9 @@ and, for the finished network, how often the solver ran; ``--pairs-of <network>`
 of that network's protocol instead (pairs the timed network never trained on).
 
 With ``--baseline <checkout>`` the same command of another checkout of linereg (another version)
-is timed beside it, on the same pairs, in the same run, the two taking turns run by run: ``command /
-baseline``.
+is timed beside it, on the same pairs, in the same run, the two taking turns run by run (which of them
+runs first alternates): ``command / baseline`` is the median over turns of the ratio of the turn's two
+runs, the times beside it the medians of each.
 
 Absolute times depend on the machine and on what else runs: compare the ratios of one run.
 """
@@ -103,16 +104,29 @@ def _env(root: Path = ROOT) -> dict[str, str]:
     return dict(os.environ, PYTHONPATH=os.pathsep.join([str(root), os.environ.get("PYTHONPATH", "")]))
 
 
-def _wall(command: list[str], cwd: Path, repeats: int, roots: tuple[Path, ...] = (ROOT,)) -> list[float]:
-    """Median wall-clock seconds of ``command`` (must succeed) with each checkout of ``roots``' code,
-    the checkouts taking turns run by run (a slow spell of the machine falls on all of them)."""
+def _turn(roots: tuple[Path, ...], run: int) -> list[tuple[int, Path]]:
+    """``(number, root)`` of each checkout in the order of run ``run``: as given on even runs, reversed
+    on odd ones (neither checkout always runs first, right after the other's)."""
+    numbered = list(enumerate(roots))
+    return numbered if run % 2 == 0 else numbered[::-1]
+
+
+def paired_ratio(times: list[float], reference: list[float]) -> float:
+    """The median over runs of ``times[i] / reference[i]``, two commands timed in the same turn: a slow
+    spell of the machine falls on both of a turn's runs and cancels."""
+    return statistics.median(spent / base for spent, base in zip(times, reference, strict=True))
+
+
+def _wall(command: list[str], cwd: Path, repeats: int, roots: tuple[Path, ...] = (ROOT,)) -> list[list[float]]:
+    """Wall-clock seconds of every run of ``command`` (must succeed) with each checkout of ``roots``'
+    code, the checkouts taking turns run by run (:func:`_turn`)."""
     times = [[] for _ in roots]
-    for _ in range(repeats):
-        for root, spent in zip(roots, times, strict=True):
+    for run in range(repeats):
+        for number, root in _turn(roots, run):
             start = time.perf_counter()
             subprocess.run(command, cwd=cwd, env=_env(root), check=True, capture_output=True)
-            spent.append(time.perf_counter() - start)
-    return [statistics.median(spent) for spent in times]
+            times[number].append(time.perf_counter() - start)
+    return times
 
 
 _TORCH_FREE = "import sys, linereg.registration.api; assert 'torch' not in sys.modules, 'torch was imported'"
@@ -125,9 +139,12 @@ def measure(pairs, folder: Path, commands: int, compare: dict | None, baseline: 
     icp, icp_err = _solver_times(METHODS.build({"name": "icp_point"}), pairs)
     register = [sys.executable, "-m", "train.register", "source=src.ply", "target=tgt.ply"]
     roots = (ROOT,) if baseline is None else (ROOT, baseline)
-    command, *before = _wall(register, folder, commands, roots)
-    (library,) = _wall([sys.executable, "-c", _TORCH_FREE], folder, commands)
-    (floor,) = _wall([sys.executable, "-c", "import torch"], folder, commands)
+    command_runs, *before = _wall(register, folder, commands, roots)
+    command = statistics.median(command_runs)
+    library, floor = (
+        statistics.median(*_wall([sys.executable, "-c", code], folder, commands))
+        for code in (_TORCH_FREE, "import torch")
+    )
     row = {
         "solver_s": statistics.median(robust),
         "solver_max_s": max(robust),
@@ -141,8 +158,8 @@ def measure(pairs, folder: Path, commands: int, compare: dict | None, baseline: 
     row["solver_vs_icp"] = row["solver_s"] / row["icp_s"]
     row["command_vs_import_torch"] = command / floor
     if baseline is not None:
-        row["baseline_command_s"] = before[0]
-        row["command_vs_baseline"] = command / before[0]
+        row["baseline_command_s"] = statistics.median(before[0])
+        row["command_vs_baseline"] = paired_ratio(command_runs, before[0])
     if compare is not None:
         other, other_err = _solver_times(METHODS.build(compare), pairs)
         row["compared_s"] = statistics.median(other)
@@ -184,13 +201,13 @@ class ScanPair(NamedTuple):
 
 def _register_runs(
     arguments: list[str], folder: Path, repeats: int, roots: tuple[Path, ...] = (ROOT,)
-) -> list[tuple[float, dict]]:
-    """Per checkout of ``roots``, taking turns run by run: the median wall-clock seconds of ``python
-    -m train.register <arguments>`` with its code, and its last ``result.json``."""
+) -> list[tuple[list[float], dict]]:
+    """Per checkout of ``roots``, taking turns run by run (:func:`_turn`): the wall-clock seconds of
+    every run of ``python -m train.register <arguments>`` with its code, and its last ``result.json``."""
     folder.mkdir()
     times, reports = [[] for _ in roots], [None for _ in roots]
     for run in range(repeats):
-        for number, root in enumerate(roots):
+        for number, root in _turn(roots, run):
             out = folder / f"checkout{number}" / f"run{run}"
             command = [sys.executable, "-m", "train.register", *arguments, f"hydra.run.dir={out}"]
             start = time.perf_counter()
@@ -200,7 +217,7 @@ def _register_runs(
                 lines = (done.stderr or done.stdout).strip().splitlines() or ["no output"]
                 raise SystemExit(f"{' '.join(command[1:])} failed: {lines[-1]}")
             reports[number] = json.loads((out / "result.json").read_text())
-    return [(statistics.median(spent), report) for spent, report in zip(times, reports, strict=True)]
+    return list(zip(times, reports, strict=True))
 
 
 def pose_errors(transform, truth: np.ndarray) -> tuple[float, float]:
@@ -275,9 +292,12 @@ def measure_scans(pairs: list[ScanPair], folder: Path, repeats: int, baseline: P
         place.mkdir()
         arguments = [f"source={pair.source}", f"target={pair.target}"]
         roots = (ROOT,) if baseline is None else (ROOT, baseline)
-        (command, report), *before = _register_runs(arguments, place / "default", repeats, roots)
-        ((reference, ref_report),) = _register_runs([*arguments, "method=fpfh_ransac"], place / "fpfh_ransac", repeats)
-        (floor,) = _wall([sys.executable, "-c", "import torch"], place, repeats)
+        (command_runs, report), *before = _register_runs(arguments, place / "default", repeats, roots)
+        ((reference_runs, ref_report),) = _register_runs(
+            [*arguments, "method=fpfh_ransac"], place / "fpfh_ransac", repeats
+        )
+        command, reference = statistics.median(command_runs), statistics.median(reference_runs)
+        floor = statistics.median(*_wall([sys.executable, "-c", "import torch"], place, repeats))
         (err_r, err_t), (ref_r, ref_t) = (pose_errors(r["transform"], pair.truth) for r in (report, ref_report))
         tried = report["info"]["global_candidates"]
         rows[pair.name] = {
@@ -298,10 +318,10 @@ def measure_scans(pairs: list[ScanPair], folder: Path, repeats: int, baseline: P
             "fpfh_ransac_confident": ref_report["confident"],
         }
         if before:
-            ((before_s, before_report),) = before
+            ((before_runs, before_report),) = before
             rows[pair.name].update(
-                baseline_command_s=before_s,
-                command_vs_baseline=command / before_s,
+                baseline_command_s=statistics.median(before_runs),
+                command_vs_baseline=paired_ratio(command_runs, before_runs),
                 baseline_err_r_deg=pose_errors(before_report["transform"], pair.truth)[0],
                 baseline_confident=before_report["confident"],
             )

@@ -196,6 +196,7 @@ def _doubting_all(assess):
     """``assess_registration`` that reports every answer not confident."""
     return lambda *args, **kwargs: assess(*args, **kwargs)._replace(confident=False)
 
+
 def _doubting_the_first(assess):
     """``assess_registration`` that reports its first answer not confident (the others as they are)."""
     calls = []

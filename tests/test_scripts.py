@@ -56,8 +56,8 @@ def test_bench_register_throughput_on_pairs_the_network_never_saw(shared_data, c
 
 
 def test_bench_register_times_two_checkouts_in_turns(tmp_path, monkeypatch):
-    """``--baseline``: the two checkouts' commands alternate run by run, each with its own code first
-    on the path, and each gets its own median."""
+    """``--baseline``: the two checkouts' commands alternate run by run, which runs first alternating,
+    each with its own code first on the path, and each gets its own times."""
     module = importlib.import_module("scripts.bench_register")
     order = []
 
@@ -72,8 +72,19 @@ def test_bench_register_times_two_checkouts_in_turns(tmp_path, monkeypatch):
     monkeypatch.setattr(module.subprocess, "run", run)
     other = tmp_path / "other"
     found = module._register_runs(["source=a.ply"], tmp_path / "runs", 3, (module.ROOT, other))
-    assert order == [str(module.ROOT), str(other)] * 3
-    assert [report["root"] for _, report in found] == [str(module.ROOT), str(other)]
-    assert all(seconds >= 0.0 for seconds, _ in found)
+    first, second = str(module.ROOT), str(other)
+    assert order == [first, second, second, first, first, second]
+    assert [report["root"] for _, report in found] == [first, second]
+    assert all(len(runs) == 3 and min(runs) >= 0.0 for runs, _ in found)
     order.clear()
-    assert len(module._wall(["python"], tmp_path, 2, (module.ROOT, other))) == 2 and len(order) == 4
+    assert [len(runs) for runs in module._wall(["python"], tmp_path, 2, (module.ROOT, other))] == [2, 2]
+    assert len(order) == 4
+
+
+def test_paired_ratio_cancels_a_slow_spell():
+    """Runs of one turn share the machine's state: a turn twice as slow leaves the ratio alone, where
+    the ratio of the two medians would move with it."""
+    module = importlib.import_module("scripts.bench_register")
+    times, reference = [1.1, 2.2, 1.1], [1.0, 2.0, 1.0]
+    assert module.paired_ratio(times, reference) == pytest.approx(1.1)
+    assert module.paired_ratio([2.0, 1.0, 1.0], [1.0, 2.0, 2.0]) == pytest.approx(0.5)

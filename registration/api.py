@@ -10,7 +10,7 @@
 
     linereg.register(src, tgt, init=T0)                            # an initial guess (4, 4)
     linereg.register(src, tgt, method="icp_point")                 # any registered method
-    linereg.register(src, tgt, method="outputs/train/run/", refine=True)  # a trained network (+ solver)
+    linereg.register(src, tgt, method="outputs/rpm_ours/runs/<run>/", refine=True)  # a trained network (+ solver)
 """
 
 from __future__ import annotations

@@ -16,7 +16,7 @@ import json
 import os
 import re
 import subprocess
-from collections.abc import Iterable, Iterator, Mapping
+from collections.abc import Iterable, Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -239,6 +239,15 @@ PAPER_DEFAULT = (
 PAPER_SIZE = {"model.num_neighbors": 64}
 
 
+def run_name(overrides: Sequence[str]) -> str:
+    """The name of a run without an experiment or a debug preset: its cell's, after the loss it trains
+    (``<loss>_<protocol>``, the loss alone without a protocol); the reference holds ``train`` and
+    ``None_<protocol>`` (named after the experiment not chosen)."""
+    choices = dict(item.split("=", 1) for item in overrides if item.startswith(("loss=", "protocol=")))
+    loss, protocol = choices.get("loss", "rpm_ours"), choices.get("protocol", "none")
+    return loss if protocol == "none" else f"{loss}_{protocol}"
+
+
 def renamed(values: Mapping[str, Any]) -> dict[str, Any]:
     """A reference cell in today's names: the explicit map from the keys the configs used to have."""
     values = dict(values)
@@ -281,8 +290,8 @@ def effective(values: Mapping[str, Any]) -> dict[str, Any]:
 
 def test_every_measured_cell_resolves_to_its_reference():
     """Every cell resolves to the reference values, through :func:`renamed` and :func:`effective`
-    only; the one other change is recipe=paper without an experiment (:data:`PAPER_DEFAULT`,
-    :data:`PAPER_SIZE`)."""
+    only; the other changes are those of the run without an experiment: under recipe=paper
+    (:data:`PAPER_DEFAULT`, :data:`PAPER_SIZE`) and its name (:func:`run_name`)."""
     reference = unpack(json.loads(FIXTURE.read_text()))
     cells = all_cells(SCHEDULE_SCRIPT)
     assert set(cells) == set(reference)
@@ -295,6 +304,8 @@ def test_every_measured_cell_resolves_to_its_reference():
             actual = {k: v for k, v in actual.items() if not k.startswith(PAPER_DEFAULT)}
         if name.startswith("paper/") and name.endswith("/none"):
             expected |= PAPER_SIZE
+        if not any(item.startswith(("experiment=", "debug=")) for item in cells[name]):
+            expected["task_name"] = run_name(cells[name])
         differences = {
             key: (expected.get(key, "<absent>"), actual.get(key, "<absent>"))
             for key in sorted(set(expected) | set(actual))
@@ -360,14 +371,14 @@ def test_no_select_and_no_value_built_from_another_choice():
                 assert ALLOWED_INTERPOLATIONS.fullmatch(interpolation), f"{path}: {interpolation}"
 
 
-def test_experiment_files_hold_the_model_the_loss_and_the_task():
+def test_experiment_files_hold_the_model_and_the_loss():
     for path in (CONFIGS / "experiment").glob("*.yaml"):
         config = yaml.safe_load(path.read_text())
         assert config["defaults"] == [
             {"override /model": config["defaults"][0]["override /model"]},
             {"override /loss": path.stem},
         ], path
-        assert set(config) == {"defaults", "task_name", "trainer"} and config["task_name"] == path.stem
+        assert set(config) == {"defaults", "trainer"}
         assert config["trainer"] == {"log_term_grad_norms": True}  # what it logs
 
 

@@ -7,9 +7,9 @@ training run of ``scripts/reproduce_generalization.sh`` (the generalization spli
 :func:`setters` lists the files that set each key (the run's defaults list as Hydra computes it,
 each file read at its package) and the test fails when two files of one run set a key, or one sets
 a key inside a value another sets. Values given on the command line are no file; the debug presets
-(``configs/debug/``, command-line overlays) are left out, and so are the keys that name and log a
-run without changing it (:data:`tests.test_config_cells.NOT_THE_RUN`: ``configs/train.yaml`` names
-the run without an experiment, an experiment and a protocol rename theirs).
+(``configs/debug/``, command-line overlays) are left out, and so is the per-term gradient-norm
+logging (:data:`LOGGING`: off in ``configs/train.yaml``, on in an experiment; no weight changes with
+it). The run's name is the cell's alone.
 
 ``python -m tests.test_config_setters experiment=rpm_ours protocol=human`` prints which file sets
 each key of a run.
@@ -28,11 +28,12 @@ from hydra import initialize_config_dir
 from hydra.core.global_hydra import GlobalHydra
 from hydra.types import RunMode
 
-from tests.test_config_cells import MACHINE, NOT_THE_RUN, PATHS, SCHEDULE_SCRIPT, all_cells, flatten
+from tests.test_config_cells import MACHINE, PATHS, SCHEDULE_SCRIPT, all_cells, flatten
 
 ROOT = Path(__file__).resolve().parent.parent
 CONFIGS = ROOT / "configs"
 RECIPES = ("cpu", "paper")
+LOGGING = ("trainer.log_term_grad_norms",)
 
 
 def _setters(loader, overrides: Iterable[str]) -> dict[str, list[str]]:
@@ -64,7 +65,7 @@ def clashes(found: Mapping[str, list[str]]) -> dict[str, list[str]]:
     for key in found:
         parts = key.split(".")
         owners = {file for i in range(1, len(parts) + 1) for file in found.get(".".join(parts[:i]), ())}
-        if len(owners) > 1 and key not in NOT_THE_RUN:
+        if len(owners) > 1 and key not in LOGGING:
             result[key] = sorted(owners)
     return result
 
@@ -107,6 +108,18 @@ def test_a_cell_reads_its_cell_file():
     assert found["cell"]["dataset.root"] == ["dataset/human_bodies.yaml"]
     assert found["default"]["loss.num_lines"] == ["cell/paper_none_rpm_ours.yaml"]
     assert found["default"]["model.num_neighbors"] == ["recipe_model/paper_rpmnet.yaml"]
+
+
+def test_the_cell_alone_names_the_run():
+    """``task_name`` is one plain value of the cell file: ``<loss>_<protocol>``, the loss alone without
+    a protocol (the run without an experiment is named for the loss it trains)."""
+    found = setters({"cell": ["experiment=dcp_cd", "protocol=real"], "default": [], "paper": ["recipe=paper"]})
+    assert found["cell"]["task_name"] == ["cell/cpu_real_dcp_cd.yaml"]
+    assert found["default"]["task_name"] == ["cell/cpu_none_rpm_ours.yaml"]
+    assert found["paper"]["task_name"] == ["cell/paper_none_rpm_ours.yaml"]
+    for path in (CONFIGS / "cell").glob("*.yaml"):
+        _, protocol, loss = path.stem.split("_", 2)
+        assert yaml.safe_load(path.read_text())["task_name"] == (loss if protocol == "none" else f"{loss}_{protocol}")
 
 
 def test_every_recipe_protocol_and_loss_has_its_cell_file():

@@ -3,7 +3,7 @@
 Written automatically when a Hydra multirun ends (``SweepSummary``, registered in
 ``configs/hydra/default.yaml``), or by hand::
 
-    python -m train.summary outputs/train/multiruns/<time>
+    python -m train.summary outputs/<task_name>/multiruns/<time>
 
 Each row is one job folder (``<n>_<overrides>``): its command-line overrides (one column per
 overridden key) and the metrics of its ``metrics.json`` (written by ``train``). The CSV holds

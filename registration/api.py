@@ -32,6 +32,7 @@ from linereg.registration.evaluation import Assessment, assess_registration
 from linereg.registration.learned import LearnedRegistration
 from linereg.registration.methods import METHODS, MethodResult
 from linereg.registration.noise import noisy_sides, smoothed, surface_noise
+from linereg.registration.robust_result import RobustResult
 from linereg.registration.similarity import scale_guesses, scale_of, similarity_polish, with_scale
 from linereg.registration.trust import SCALE_MOVE, free_scale, surface_points
 from linereg.registry import UnknownNameError
@@ -55,8 +56,12 @@ class RegistrationResult:
             (:func:`~linereg.registration.evaluation.assess_registration`).
         seconds: wall-clock time of the registration (reading files excluded).
         scale: the scale ``s`` of ``transformation = [s R | t]`` with ``scale=True`` (1 otherwise).
-        info: the method's details: ``method``, ``fitness_threshold``, ``sampling_distance``, and
-            for the default solver ``rounds``, ``candidates``, ``selection``, ...
+        info: what no field holds: ``method``, ``fitness_threshold``, ``sampling_distance``,
+            ``tight_fitness``, ``chance_fitness``, ``warnings``, ``surface_noise``, ``smoothed``,
+            ``clutter``, ``init`` and the method's own extras (``path`` of a finished network, ...).
+        solution: the method's typed record, when it has one: the default solver's
+            :class:`~linereg.registration.robust_result.RobustResult` (its rounds, candidates,
+            steps and doubt tests).
     """
 
     transformation: np.ndarray
@@ -66,6 +71,7 @@ class RegistrationResult:
     seconds: float
     info: dict[str, Any] = field(default_factory=dict)
     scale: float = 1.0
+    solution: RobustResult | None = None
 
 
 def as_cloud(value: Any, name: str) -> tuple[np.ndarray, np.ndarray | None]:
@@ -270,6 +276,7 @@ def register_clouds(
         seconds=seconds,
         info=info,
         scale=factor,
+        solution=result.solution,
     )
 
 
@@ -351,7 +358,8 @@ def _solve_with_scale(solver, seen: _Seen, src, tgt, judge: _Judge):
         rank = (found.confident, found.fitness)
         if best is None or rank > best[0]:
             info = {**result.info, "scale_guess": guess, "scale_from": "fit"}
-            best = rank, MethodResult(transform=transform, seconds=result.seconds, info=info), factor, found, loose
+            answer = MethodResult(transform=transform, seconds=result.seconds, info=info, solution=result.solution)
+            best = rank, answer, factor, found, loose
     _, answer, factor, found, loose = best
     if loose is not None:
         return _scale_by_spacing((answer, factor, found), *by_spacing, src, tgt, judge)
@@ -371,4 +379,6 @@ def _scale_by_spacing(fitted, guess, result, src, tgt, judge: _Judge):
     if not held.confident:
         return fitted
     info = {**result.info, "scale_guess": guess, "scale_from": "point spacings"}
-    return MethodResult(transform=with_scale(rigid, guess), seconds=result.seconds, info=info), guess, held
+    transform = with_scale(rigid, guess)
+    scaled = MethodResult(transform=transform, seconds=result.seconds, info=info, solution=result.solution)
+    return scaled, guess, held

@@ -172,7 +172,10 @@ class LearnedRegistration:
             return MethodResult(transform=network, seconds=seconds, info={**info, "path": "network"})
         finished = self.finish(np.asarray(src, np.float64), np.asarray(tgt, np.float64), network)
         return MethodResult(
-            transform=finished.transform, seconds=seconds + finished.seconds, info={**info, **finished.info}
+            transform=finished.transform,
+            seconds=seconds + finished.seconds,
+            info={**info, **finished.info},
+            solution=finished.solution,
         )
 
 
@@ -204,13 +207,15 @@ class Finish:
         info = {"solver_ran": False, "polished_confident": judged.confident}
         if judged.confident:
             seconds = time.perf_counter() - began
-            return MethodResult(polished.transform, seconds, {**polished.info, **info, "path": "polished network"})
+            info |= {"path": "polished network"}
+            return MethodResult(polished.transform, seconds, {**polished.info, **info}, polished.solution)
         solved = self.solver(src, tgt)
         rival = assess_registration(src, tgt, solved.transform, on_surface=surface, target_index=index)
         info["solver_ran"] = True
         solver_wins = rival.confident or fits_better(src, tgt, solved.transform, polished.transform)
         winner, path = (solved, "solver") if solver_wins else (polished, "polished network")
-        return MethodResult(winner.transform, time.perf_counter() - began, {**winner.info, **info, "path": path})
+        seconds = time.perf_counter() - began
+        return MethodResult(winner.transform, seconds, {**winner.info, **info, "path": path}, winner.solution)
 
     def polish(self, src: np.ndarray, tgt: np.ndarray, start: np.ndarray) -> MethodResult:
         """The local polish of ``start (4, 4)``: both clouds shifted by the target's centroid alone
@@ -218,7 +223,8 @@ class Finish:
         network's translation)."""
         centroid = tgt.mean(axis=0)
         polished = run_with_init(self.polisher, src, tgt - centroid, init=translation(-centroid) @ start)
-        return MethodResult(translation(centroid) @ polished.transform, polished.seconds, polished.info)
+        transform = translation(centroid) @ polished.transform
+        return MethodResult(transform, polished.seconds, polished.info, polished.solution)
 
 
 @functools.lru_cache(maxsize=4)

@@ -23,6 +23,7 @@ from typing import Any
 import numpy as np
 
 from linereg.checks import check_points
+from linereg.registration.robust_result import RobustResult
 from linereg.registry import Registry
 
 
@@ -33,12 +34,16 @@ class MethodResult:
     Attributes:
         transform: ``(4, 4)`` float64 source-to-target transform.
         seconds: wall-clock time of the registration.
-        info: method-specific extras (loss curve, iterations, fitness, ...).
+        info: method-specific extras that no typed record holds (loss curve, iterations,
+            ``warnings``, ...).
+        solution: the method's typed record, when it has one: the
+            :class:`~linereg.registration.robust_result.RobustResult` of ``robust``.
     """
 
     transform: np.ndarray
     seconds: float = 0.0
     info: dict[str, Any] = field(default_factory=dict)
+    solution: RobustResult | None = None
 
 
 Method = Callable[..., MethodResult]
@@ -114,7 +119,7 @@ def run_centered(
     result = solve(src - c_src, tgt - c_tgt, src_normals, tgt_normals)
     seconds = time.perf_counter() - start
     transform = translation(c_tgt) @ np.asarray(result.transform, dtype=np.float64) @ translation(-c_src)
-    return MethodResult(transform=transform, seconds=seconds, info=result.info)
+    return MethodResult(transform=transform, seconds=seconds, info=result.info, solution=result.solution)
 
 
 def run_with_init(
@@ -136,4 +141,4 @@ def run_with_init(
     normals = None if src_normals is None else src_normals @ init[:3, :3].T
     result = method(moved, tgt, normals, tgt_normals)
     transform = np.asarray(result.transform, dtype=np.float64) @ init
-    return MethodResult(transform=transform, seconds=result.seconds, info=result.info)
+    return MethodResult(transform=transform, seconds=result.seconds, info=result.info, solution=result.solution)

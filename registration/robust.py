@@ -214,19 +214,10 @@ class RobustRegistration:
     fixed-scale selection; when doubtful, on a scan the dense check and, if that doubts too, global
     candidates; then Adam on CD-W and a pose search (module docstring).
 
-    :meth:`solve` returns a :class:`~linereg.registration.robust_result.RobustResult`; calling the
-    method returns a :class:`~linereg.registration.methods.MethodResult` whose ``info`` is
-    :attr:`RobustResult.info <linereg.registration.robust_result.RobustResult.info>`:
-    ``doubtful`` (the final choice fails the doubt test), ``margin`` (``1 - best cost / cost of
-    the best distinct rival``, by the cost that chose; 1 without a rival), ``global_candidates``
-    (FPFH + RANSAC and FGR candidates that ran; 0 when that stage did not run), ``cost`` (the chosen
-    candidate's cost: at ``select_nu``, or the dense cost), ``rounds``, ``starts`` (coarse
-    candidates of all rounds: starts x coarse sides, searched poses), ``candidates`` (those left
-    at the end), ``selection`` (``"fixed"``; ``"polish"`` after a doubtful first round:
-    ``doubtful_select``; ``"dense"``), ``fine`` (the chosen pose got the fine polish),
-    ``coincident`` (the share of source points on a target point before the plane-to-plane
-    steps; ``None`` without that test), ``plane`` (the plane-to-plane steps ran) and
-    ``warnings`` (collinear clouds). :func:`linereg.register` adds ``fitness`` and ``inlier_rmse``.
+    :meth:`solve` returns a :class:`~linereg.registration.robust_result.RobustResult` (the chosen
+    pose, the candidates left, every step with its doubt test, the final steps' flags); calling the
+    method returns a :class:`~linereg.registration.methods.MethodResult` holding it as ``solution``,
+    with the notes on the input clouds (collinear points) in ``info["warnings"]``.
 
     Args:
         options: :class:`~linereg.registration.robust_options.RobustOptions` or a mapping of its
@@ -278,7 +269,8 @@ class RobustRegistration:
     def __call__(self, src, tgt, src_normals=None, tgt_normals=None) -> MethodResult:
         """Register ``src (N, 3)`` onto ``tgt (M, 3)`` (normals unused): :meth:`solve` as a method result."""
         result = self.solve(src, tgt)
-        return MethodResult(transform=result.transform, seconds=result.seconds, info=result.info)
+        info = {"warnings": list(result.warnings)}
+        return MethodResult(transform=result.transform, seconds=result.seconds, info=info, solution=result)
 
     def solve(self, src, tgt) -> RobustResult:
         """Register ``src (N, 3)`` onto ``tgt (M, 3)``: both clouds centred (``center``) and scaled

@@ -3,7 +3,8 @@
 A frozen, typed record (as Open3D's ``RegistrationResult`` or pytorch3d's ``ICPSolution``): the
 chosen pose, every candidate left at the end with its costs and origin, one entry per step of the
 solver with the doubt test after it, and the flags of the final steps. :attr:`RobustResult.info`
-is the ``info`` mapping of the method's :class:`~linereg.registration.methods.MethodResult`.
+reaches :class:`~linereg.registration.methods.MethodResult` and ``register``'s result as their
+``solution``; :attr:`RobustResult.summary` is its plain summary for the JSON outputs.
 """
 
 from __future__ import annotations
@@ -118,22 +119,40 @@ class RobustResult:
     seconds: float = 0.0
 
     @property
-    def info(self) -> dict[str, Any]:
-        """The method's ``info``: ``doubtful``, ``margin``, ``global_candidates`` (global
-        candidates that ran), ``cost`` (the chosen candidate's), ``rounds`` (the last round that
-        ran), ``starts`` (coarse candidates of all rounds), ``candidates`` (how many are left),
-        ``selection``, ``fine``, ``coincident``, ``plane`` and ``warnings`` (a list)."""
+    def global_candidates(self) -> int:
+        """The global candidates that ran (0 when that stage did not run)."""
+        return sum(step.added for step in self.history if step.stage == GLOBAL)
+
+    @property
+    def rounds(self) -> int:
+        """The last round that ran."""
+        return self.history[-1].round
+
+    @property
+    def starts(self) -> int:
+        """The coarse candidates of all rounds (starts x coarse sides, searched poses)."""
+        return sum(step.starts for step in self.history)
+
+    @property
+    def cost(self) -> float:
+        """The chosen candidate's :attr:`Candidate.cost`."""
+        return self.candidates[self.chosen].cost
+
+    @property
+    def summary(self) -> dict[str, Any]:
+        """The record in plain values (``result.json``, the benchmark's records): ``doubtful``,
+        ``margin``, ``global_candidates``, ``cost``, ``rounds``, ``starts``, ``candidates`` (how many
+        are left), ``selection``, ``fine``, ``coincident`` and ``plane``."""
         return {
             "doubtful": self.doubtful,
             "margin": self.margin,
-            "global_candidates": sum(step.added for step in self.history if step.stage == GLOBAL),
-            "cost": self.candidates[self.chosen].cost,
-            "rounds": self.history[-1].round,
-            "starts": sum(step.starts for step in self.history),
+            "global_candidates": self.global_candidates,
+            "cost": self.cost,
+            "rounds": self.rounds,
+            "starts": self.starts,
             "candidates": len(self.candidates),
             "selection": self.selection,
             "fine": self.fine,
             "coincident": self.coincident,
             "plane": self.plane,
-            "warnings": list(self.warnings),
         }

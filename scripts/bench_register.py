@@ -299,7 +299,7 @@ def measure_scans(pairs: list[ScanPair], folder: Path, repeats: int, baseline: P
         command, reference = statistics.median(command_runs), statistics.median(reference_runs)
         floor = statistics.median(*_wall([sys.executable, "-c", "import torch"], place, repeats))
         (err_r, err_t), (ref_r, ref_t) = (pose_errors(r["transform"], pair.truth) for r in (report, ref_report))
-        tried = report["info"]["global_candidates"]
+        tried = report["solver"]["global_candidates"]
         rows[pair.name] = {
             "source_points": report["source_points"],
             "target_points": report["target_points"],

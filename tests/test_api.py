@@ -10,6 +10,7 @@ import linereg
 from linereg.datasets.procedural import procedural_shape
 from linereg.io import write_point_cloud
 from linereg.models import MODELS
+from linereg.registration.robust_result import RobustResult
 from linereg.registry import ArgumentError, UnknownNameError
 from linereg.se3 import euler_to_rotmat, rt_to_matrix
 from linereg.train.checkpoint import save_checkpoint
@@ -43,6 +44,8 @@ def test_the_default_solver_recovers_the_pose(pair):
     assert rotation_error_deg(result.transformation, T) < 0.5
     assert result.fitness > 0.95 and 0 <= result.inlier_rmse < result.info["fitness_threshold"] and result.seconds > 0
     assert result.confident and result.info["method"]["name"] == "robust"
+    assert isinstance(result.solution, RobustResult) and result.solution.rounds == 1  # the solver's typed record
+    assert not {"rounds", "doubtful", "selection", "global_candidates"} & set(result.info)  # info: no field's values
 
 
 def test_arrays_tensors_and_files_give_the_same_result(pair, tmp_path):
@@ -82,7 +85,7 @@ def test_a_registered_method_with_options(pair):
     src, tgt, _ = pair
     result = linereg.register(src, tgt, method="icp_point", max_iterations=5, fitness_threshold=0.05)
     assert result.info["fitness_threshold"] == 0.05 and result.info["method"]["max_iterations"] == 5
-    assert 0.0 <= result.fitness <= 1.0
+    assert 0.0 <= result.fitness <= 1.0 and result.solution is None  # ICP keeps no typed record
 
 
 @pytest.fixture(scope="module")

@@ -144,6 +144,7 @@ def test_register_command_writes_its_outputs(tmp_path):
     saved = json.loads((out / "result.json").read_text())
     assert saved["metrics"]["err_r_deg"] < 1.0 and saved["seconds"] > 0
     assert saved["fitness"] > 0.9 and 0 < saved["inlier_rmse"] < 0.1 and saved["confident"] is True
+    assert saved["solver"]["rounds"] == 1 and saved["solver"]["selection"] == "fixed" and "rounds" not in saved["info"]
     assert report["source_points"] == 700 and report["target_points"] == 900
     assert not (out / "registration.png").exists()
 

@@ -176,11 +176,11 @@ def test_robust_registration_recovers_a_partial_view_and_reports_its_quality(par
     src, tgt, truth = partial_pair
     result = linereg.register(src, tgt, num_points=1024)
     assert error_deg(result.transformation, truth) < 0.5
-    info = result.info
-    assert result.fitness > 0.95 and 0 < result.inlier_rmse < info["fitness_threshold"]
-    assert result.confident and info["doubtful"] is False and info["margin"] > 0.2 and info["rounds"] == 1
-    assert info["starts"] == 4 * 2 and 1 <= info["candidates"] <= 8 and info["warnings"] == []
-    assert info["selection"] == "fixed"
+    solution = result.solution
+    assert result.fitness > 0.95 and 0 < result.inlier_rmse < result.info["fitness_threshold"]
+    assert result.confident and solution.doubtful is False and solution.margin > 0.2 and solution.rounds == 1
+    assert solution.starts == 4 * 2 and 1 <= len(solution.candidates) <= 8 and result.info["warnings"] == []
+    assert solution.selection == "fixed" and "rounds" not in result.info  # the record's, not info's
 
 
 def test_a_doubtful_pose_gets_the_later_rounds(partial_pair):
@@ -189,8 +189,8 @@ def test_a_doubtful_pose_gets_the_later_rounds(partial_pair):
     local = {"max_cost": 1e-6, "global_candidates": "never"}
     result = METHODS.build({"name": "robust", "num_points": 512, "options": local}).solve(src, tgt)
     search_keep = RobustOptions().search.keep
-    assert result.info["rounds"] == 3 and result.info["starts"] == 2 * (4 + 4) + search_keep
-    assert result.info["doubtful"] is True and result.info["selection"] == "polish"
+    assert result.rounds == 3 and result.starts == 2 * (4 + 4) + search_keep
+    assert result.doubtful is True and result.selection == "polish"
     assert error_deg(result.transform, truth) < 1.0
     assert [(step.round, step.stage, step.judgement) for step in result.history] == [
         (number, STAGES[number], "fixed") for number in (1, 2, 3)
@@ -198,16 +198,16 @@ def test_a_doubtful_pose_gets_the_later_rounds(partial_pair):
     assert all(step.doubtful for step in result.history)
     assert sum(step.added for step in result.history) == len(result.candidates)
     origins = [(c.round, c.origin, c.start) for c in result.candidates]
-    assert len(set(origins)) == len(origins) == result.info["candidates"]
+    assert len(set(origins)) == len(origins) == result.summary["candidates"]
     assert {(c.round, c.origin) for c in result.candidates} == {(1, "start"), (2, "start"), (3, "search")}
     assert all(c.start < (search_keep if c.round == 3 else 8) for c in result.candidates)
     objectives = [c.objective for c in result.candidates]
     assert result.chosen == int(np.argmin(objectives)) and objectives != [c.cost for c in result.candidates]
-    assert result.info["cost"] == result.candidates[result.chosen].cost
+    assert result.cost == result.summary["cost"] == result.candidates[result.chosen].cost
     with pytest.raises(dataclasses.FrozenInstanceError):
         result.doubtful = False
     capped = METHODS.build({"name": "robust", "num_points": 512, "options": {**local, "rounds": 1}})
-    assert capped(src, tgt).info["rounds"] == 1
+    assert capped(src, tgt).solution.rounds == 1
 
 
 def test_the_dense_check_keeps_a_right_first_answer_on_a_scan(partial_pair):
@@ -215,12 +215,11 @@ def test_the_dense_check_keeps_a_right_first_answer_on_a_scan(partial_pair):
     check judges its answer against the dense target, trusts it, and no global candidate runs."""
     src, tgt, truth = partial_pair
     result = METHODS.build({"name": "robust", "num_points": 1024, "options": {"max_cost": 1e-6}}).solve(src, tgt)
-    info = result.info
     first, check = result.history
     assert (first.stage, first.judgement, first.doubtful) == (STAGES[1], "fixed", True)
     assert (check.round, check.stage, check.starts, check.added) == (1, CHECK, 0, 0)
     assert (check.judgement, check.doubtful) == ("dense", False)
-    assert info["global_candidates"] == 0 and info["selection"] == "dense" and info["coincident"] > 0.5
+    assert result.global_candidates == 0 and result.selection == "dense" and result.coincident > 0.5
     assert error_deg(result.checked.transform, truth) < 1.0 and error_deg(result.transform, truth) < 1.0
     assert (result.checked.round, result.checked.origin) == (1, "start")
     assert len(result.candidates) <= RobustOptions().global_stage.dense_keep and not result.fine
@@ -236,9 +235,9 @@ def test_a_doubtful_dense_check_brings_the_global_candidates_then_the_later_roun
     first, check, found, *later = result.history
     assert (first.doubtful, check.stage, check.doubtful) == (True, CHECK, True)
     assert error_deg(result.checked.transform, truth) > 5.0
-    assert (found.round, found.stage, found.starts, found.added) == (1, GLOBAL, 0, result.info["global_candidates"])
+    assert (found.round, found.stage, found.starts, found.added) == (1, GLOBAL, 0, result.global_candidates)
     assert 1 <= found.added <= 3 and later and all(step.judgement == "dense" for step in [check, found, *later])
-    assert error_deg(result.transform, truth) < 1.0 and result.info["selection"] == "dense"
+    assert error_deg(result.transform, truth) < 1.0 and result.selection == "dense"
 
 
 def test_the_global_stage_stops_at_the_first_candidate_that_settles_the_choice(partial_pair):
@@ -249,7 +248,7 @@ def test_the_global_stage_stops_at_the_first_candidate_that_settles_the_choice(p
     result = METHODS.build({"name": "robust", "num_points": 1024, "options": options}).solve(src, tgt)
     stages = [(step.stage, step.added, step.doubtful) for step in result.history]
     assert stages == [(STAGES[1], result.history[0].added, True), (CHECK, 0, False), (GLOBAL, 1, False)]
-    assert result.info["global_candidates"] == 1 and error_deg(result.transform, truth) < 1.0
+    assert result.global_candidates == 1 and error_deg(result.transform, truth) < 1.0
 
 
 def test_the_feature_matcher_computes_the_features_once(monkeypatch):
@@ -280,7 +279,8 @@ def test_results_are_deterministic_and_the_method_result_is_the_typed_one(partia
     method = METHODS.build({"name": "robust", "num_points": 512})
     called, solved = method(src, tgt), method.solve(src, tgt)
     np.testing.assert_array_equal(called.transform, solved.transform)
-    assert called.info == solved.info and list(called.info) == list(solved.info)
+    assert called.solution.summary == solved.summary and called.solution.history == solved.history
+    assert called.info == {"warnings": list(solved.warnings)}
 
 
 def test_degenerate_clouds_warn_or_fail():
@@ -321,7 +321,7 @@ def test_a_scan_whose_answer_passes_the_dense_check_imports_neither_open3d_nor_t
         "assert [step.stage for step in result.history] == ['IRLS on CD-W', 'dense check'], result.history\n"
         "assert not {'torch', 'open3d'} & set(sys.modules), 'the dense check imported torch or Open3D'\n"
         "result = solve(global_candidates='always')\n"
-        "assert result.info['global_candidates'] == 1 and 'open3d' in sys.modules\n"
+        "assert result.global_candidates == 1 and 'open3d' in sys.modules\n"
         "assert 'torch' not in sys.modules, 'the global stage imported torch'\n"
     )
     subprocess.run([sys.executable, "-c", code], cwd=REPO_ROOT, check=True, timeout=300)
@@ -392,9 +392,9 @@ def test_the_pose_search_finds_a_view_the_adam_rounds_miss(shared_data):
     truth = pair.gt_transform.astype(np.float64)
     local = {"global_candidates": "never"}
     two_rounds = METHODS.build({"name": "robust", "options": {**local, "rounds": 2}})(pair.src_xyz, pair.tgt_xyz)
-    assert error_deg(two_rounds.transform, truth) > 5.0 and two_rounds.info["doubtful"] is True
+    assert error_deg(two_rounds.transform, truth) > 5.0 and two_rounds.solution.doubtful is True
     result = METHODS.build({"name": "robust", "options": local})(pair.src_xyz, pair.tgt_xyz)
-    assert result.info["rounds"] == 3 and result.info["doubtful"] is False
+    assert result.solution.rounds == 3 and result.solution.doubtful is False
     assert error_deg(result.transform, truth) < 0.5
     assert error_deg(METHODS.build({"name": "robust"})(pair.src_xyz, pair.tgt_xyz).transform, truth) < 0.5
 
@@ -418,7 +418,7 @@ def test_a_view_lying_on_the_target_gets_the_fine_polish(shared_data):
     truth = pair.gt_transform.astype(np.float64)
     fine = METHODS.build({"name": "robust"})(pair.src_xyz, pair.tgt_xyz)
     plain = METHODS.build({"name": "robust", "options": {"fine_end": 0.3}})(pair.src_xyz, pair.tgt_xyz)
-    assert fine.info["fine"] is True and plain.info["fine"] is False
+    assert fine.solution.fine is True and plain.solution.fine is False
     assert error_deg(fine.transform, truth) < 0.2 * error_deg(plain.transform, truth)
 
 
@@ -428,7 +428,7 @@ def test_a_partial_overlap_keeps_the_polish_scale(partial_pair):
     cut = tgt[tgt[:, 1] > tgt[:, 1].mean()]
     result = linereg.register(src, cut, num_points=512, options={"rounds": 1})
     plain = linereg.register(src, cut, num_points=512, options={"rounds": 1, "fine_end": 0.3})
-    assert result.info["fine"] is False and result.fitness < RobustOptions().polish.fine_fitness
+    assert result.solution.fine is False and result.fitness < RobustOptions().polish.fine_fitness
     np.testing.assert_array_equal(result.transformation, plain.transformation)
 
 
@@ -462,15 +462,15 @@ def test_doubtful_rounds_choose_the_true_pose_of_a_flipped_airplane_view(shared_
     truth = pair.gt_transform.astype(np.float64)
     local = {"global_candidates": "never"}
     result = METHODS.build({"name": "robust", "options": local})(pair.src_xyz, pair.tgt_xyz)
-    assert result.info["rounds"] == 3 and result.info["selection"] == "polish"
-    assert error_deg(result.transform, truth) < 1.0 and result.info["doubtful"] is True
+    assert result.solution.rounds == 3 and result.solution.selection == "polish"
+    assert error_deg(result.transform, truth) < 1.0 and result.solution.doubtful is True
     fixed = {**local, "doubtful_select": "fixed"}
     assert (
         error_deg(METHODS.build({"name": "robust", "options": fixed})(pair.src_xyz, pair.tgt_xyz).transform, truth)
         > 170
     )
     default = METHODS.build({"name": "robust"})(pair.src_xyz, pair.tgt_xyz)
-    assert default.info["global_candidates"] == 0 and default.info["selection"] == "polish"
+    assert default.solution.global_candidates == 0 and default.solution.selection == "polish"
 
 
 def test_pca_normals_are_the_surface_normals():
@@ -522,10 +522,10 @@ def test_the_plane_steps_run_on_independent_samplings_only(partial_pair):
     src, tgt, truth = partial_pair
     method = METHODS.build({"name": "robust", "num_points": 1024, "options": {"rounds": 1}})
     shared = method(src, tgt)
-    assert shared.info["fine"] is True and shared.info["coincident"] > 0.2 and shared.info["plane"] is False
+    assert shared.solution.fine is True and shared.solution.coincident > 0.2 and shared.solution.plane is False
     view = surface(3000, 8)
     independent = method(view[view[:, 0] > -0.3][:700], tgt)
-    assert independent.info["coincident"] < 0.01 and independent.info["plane"] is True
+    assert independent.solution.coincident < 0.01 and independent.solution.plane is True
     assert error_deg(independent.transform, truth) < 0.1
     off = {"name": "robust", "num_points": 1024, "options": {"rounds": 1, "plane_steps": 0}}
-    assert METHODS.build(off)(view[view[:, 0] > -0.3][:700], tgt).info["plane"] is False
+    assert METHODS.build(off)(view[view[:, 0] > -0.3][:700], tgt).solution.plane is False

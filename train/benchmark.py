@@ -145,6 +145,7 @@ def run_benchmark(
                     **_measure(pair, result.transform),
                     "transform": np.asarray(result.transform, dtype=np.float64).tolist(),
                     "info": jsonable(result.info),
+                    **({} if result.solution is None else {"solver": jsonable(result.solution.summary)}),
                 }
             )
             if journal is not None:

@@ -232,7 +232,9 @@ def _rotation_monitor(gt: np.ndarray):
 
 
 def _report(cfg: DictConfig, src, tgt, result, notes: list[str], gt: np.ndarray | None) -> dict[str, Any]:
-    """The contents of ``result.json``: clouds, method, time, transform, quality and (with ``gt``) errors."""
+    """The contents of ``result.json``: clouds, method, time, transform, quality, the solver's record
+    (``solver``: :attr:`~linereg.registration.robust_result.RobustResult.summary`, when the method has
+    one) and (with ``gt``) errors."""
     transform = result.transformation
     info = dict(result.info)
     info.pop("warnings", None)
@@ -253,6 +255,8 @@ def _report(cfg: DictConfig, src, tgt, result, notes: list[str], gt: np.ndarray 
         "info": info,
         "warnings": notes,
     }
+    if result.solution is not None:
+        report["solver"] = result.solution.summary
     if gt is not None:
         import torch
 

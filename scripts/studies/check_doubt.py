@@ -140,7 +140,7 @@ def measure(name: str, src: np.ndarray, tgt: np.ndarray, label: np.ndarray) -> d
         "final_err_t": final_t,
         "seconds": result.seconds,
         "stages": [step.stage for step in result.history],
-        "global_candidates": result.info["global_candidates"],
+        "global_candidates": result.global_candidates,
     }
     if check is not None:
         dense = fps(tgt, RobustOptions().global_stage.dense_points)

@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import hashlib
 from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -113,55 +114,77 @@ def _list_digest(names: Sequence[str]) -> str:
     return hashlib.sha256("\n".join(names).encode()).hexdigest()[:16]
 
 
+@dataclass(frozen=True)
+class ShapeSelection:
+    """The shapes of a folder that a dataset reads (module docstring): both sources take it.
+
+    Attributes:
+        categories: keep these categories only (a mesh folder's first path component under its
+            root, a ModelNet40 class such as ``"airplane"``).
+        split: ``"train"``, ``"test"`` or ``"all"``.
+        split_rule: ``"official"``, ``"random"``, ``"views"`` or ``"held_out"`` (mesh folders).
+        train_fraction: train share of the random and views rules.
+        split_seed: seed of the random and views rules.
+        max_shapes: use only the first ``max_shapes`` shapes (sorted files, ModelNet40's official
+            order) before splitting.
+    """
+
+    categories: str | Sequence[str] | None = None
+    split: str = "all"
+    split_rule: str = "official"
+    train_fraction: float = 0.8
+    split_seed: int = 0
+    max_shapes: int | None = None
+
+    def __post_init__(self) -> None:
+        _check_split(self.split, self.split_rule, self.train_fraction)
+
+    def first(self, items: list[tuple[str, Any]], where: Path) -> list[tuple[str, Any]]:
+        """``items`` ``(category, x)`` of the wanted categories (ValueError naming unknown ones, found
+        in ``where``), the first ``max_shapes`` of them."""
+        items = _filter_categories(items, _as_list(self.categories), where)
+        return items if self.max_shapes is None else items[: self.max_shapes]
+
+    def randomly(self, items: list[Any]) -> list[Any]:
+        """The split's part of ``items`` by the seeded random rule."""
+        return random_split(items, self.split, train_fraction=self.train_fraction, split_seed=self.split_seed)
+
+
 class MeshFolderShapes:
     """Every mesh (OFF/OBJ/PLY/STL) under a folder; the first sub-folder is the category.
 
     Args:
         root: the folder (searched recursively).
-        categories: keep these categories only (first path component under ``root``).
-        split: ``"train"``, ``"test"`` or ``"all"``.
-        split_rule: ``"official"`` (``train/`` and ``test/`` sub-folders), ``"random"`` or
-            ``"held_out"`` (test: the shapes named in ``held_out``; train: the others).
-        train_fraction: train share for the random rule.
-        split_seed: seed of the random rule.
-        max_shapes: use only the first ``max_shapes`` files (sorted) before splitting.
+        selection: the shapes read; its ``"official"`` rule reads ``train/`` and ``test/``
+            sub-folders, its ``"held_out"`` rule holds out the shapes named in ``held_out``
+            (test: those, train: the others).
         held_out: file stems of the test shapes of the ``"held_out"`` rule.
     """
 
     def __init__(
         self,
         root: str | Path,
-        *,
-        categories: str | Sequence[str] | None = None,
-        split: str = "all",
-        split_rule: str = "official",
-        train_fraction: float = 0.8,
-        split_seed: int = 0,
-        max_shapes: int | None = None,
+        selection: ShapeSelection = ShapeSelection(),
         held_out: str | Sequence[str] | None = None,
     ) -> None:
-        _check_split(split, split_rule, train_fraction)
         self.root = existing_folder(root, "mesh folder")
-        self.split, self.split_rule = split, split_rule
-        self.train_fraction, self.split_seed = train_fraction, split_seed
+        self.selection, self.split = selection, selection.split  # split: a ShapeCollection's
+        split, split_rule = selection.split, selection.split_rule
         files = sorted(p for p in self.root.rglob("*") if p.suffix.lower() in MESH_SUFFIXES)
         if not files:
             raise FileNotFoundError(f"no mesh files ({', '.join(MESH_SUFFIXES)}) under {self.root}")
-        items = [(self._category(p), p) for p in files]
-        items = _filter_categories(items, _as_list(categories), self.root)
-        if max_shapes is not None:
-            items = items[:max_shapes]
+        items = selection.first([(self._category(p), p) for p in files], self.root)
         if split != "all" and split_rule == "official":
             items = [item for item in items if split in item[1].relative_to(self.root).parts[:-1]]
         elif split != "all" and split_rule == "random":
-            items = random_split(items, split, train_fraction=train_fraction, split_seed=split_seed)
+            items = selection.randomly(items)
         elif split_rule == "held_out":
             items = _held_out_split(items, split, _as_list(held_out), self.root)
         elif held_out is not None:
             raise ValueError(f"held_out={held_out!r} needs split_rule='held_out', got {split_rule!r}")
         if not items:
             raise ValueError(
-                f"no meshes left under {self.root} for categories={categories}, split={split!r} "
+                f"no meshes left under {self.root} for categories={selection.categories}, split={split!r} "
                 f"(split_rule={split_rule!r}: 'official' needs train/ and test/ sub-folders)"
             )
         self.items = items
@@ -202,35 +225,21 @@ class ModelNet40Shapes:
     Args:
         root: dataset folder: ``<class>/<class>_XXXX.txt`` files (``x,y,z,nx,ny,nz`` lines) or
             ``ply_data_{train,test}*.h5`` files (``data``, ``normal``, ``label``).
-        categories: class names to keep (e.g. ``"airplane"``).
-        split: ``"train"``, ``"test"`` or ``"all"``.
-        split_rule: ``"official"`` or ``"random"`` (the paper's 500/125 Airplane split).
-        train_fraction: train share for the random rule.
-        split_seed: seed of the random rule.
-        max_shapes: use only the first ``max_shapes`` shapes (official order) before splitting.
+        selection: the shapes read, by the ``"official"``, ``"random"`` (the paper's 500/125
+            Airplane split) or ``"views"`` rule.
         file_format: ``"auto"``, ``"text"`` or ``"hdf5"``.
     """
 
     def __init__(
-        self,
-        root: str | Path,
-        *,
-        categories: str | Sequence[str] | None = None,
-        split: str = "train",
-        split_rule: str = "official",
-        train_fraction: float = 0.8,
-        split_seed: int = 0,
-        max_shapes: int | None = None,
-        file_format: str = "auto",
+        self, root: str | Path, selection: ShapeSelection = ShapeSelection(split="train"), file_format: str = "auto"
     ) -> None:
-        _check_split(split, split_rule, train_fraction)
+        split, split_rule = selection.split, selection.split_rule
         if split_rule == "held_out":
             raise ValueError(
                 "split_rule='held_out' is a mesh folder's rule; ModelNet40 takes 'official', 'random' or 'views'"
             )
         self.root = existing_folder(root, "ModelNet40 folder")
-        self.split, self.split_rule = split, split_rule
-        self.train_fraction, self.split_seed = train_fraction, split_seed
+        self.selection, self.split = selection, selection.split  # split: a ShapeCollection's
         if file_format == "auto":
             file_format = "hdf5" if any(self.root.glob("*.h5")) else "text"
         if file_format not in ("text", "hdf5"):
@@ -241,14 +250,12 @@ class ModelNet40Shapes:
             items = self._text_items(official)
         else:
             items = self._hdf5_items(official)
-        items = _filter_categories(items, _as_list(categories), self.root)
-        if max_shapes is not None:
-            items = items[:max_shapes]
+        items = selection.first(items, self.root)
         if split_rule == "random":
-            items = random_split(items, split, train_fraction=train_fraction, split_seed=split_seed)
+            items = selection.randomly(items)
         if not items:
             raise ValueError(
-                f"no ModelNet40 shapes in {self.root} for categories={categories}, "
+                f"no ModelNet40 shapes in {self.root} for categories={selection.categories}, "
                 f"split={split!r}, split_rule={split_rule!r}"
             )
         self.items = items
@@ -338,23 +345,38 @@ def _shape_pairs(
     """The pair dataset of a shape source; the ``"views"`` rule keeps the split's camera stops."""
     protocol = build_protocol(protocol)
     views = None
-    if shapes.split_rule == "views":
-        all_views = range(protocol.pairs_per_shape)
-        views = random_split(
-            all_views, shapes.split, train_fraction=shapes.train_fraction, split_seed=shapes.split_seed
-        )
+    if shapes.selection.split_rule == "views":
+        views = shapes.selection.randomly(range(protocol.pairs_per_shape))
     return ShapePairDataset(shapes, protocol, seed=seed, name=name, views=views)
 
 
 @DATASETS.register("mesh_folder")
-@keywords_of(MeshFolderShapes)
-def build_mesh_folder(*, protocol: str | Mapping[str, Any] = "airplane", seed: int = 0, **shapes) -> ShapePairDataset:
-    """Pairs from any folder of meshes (``shapes``: :class:`MeshFolderShapes`'s arguments; see the protocol)."""
-    return _shape_pairs(MeshFolderShapes(**shapes), protocol, seed, "mesh_folder")
+@keywords_of(ShapeSelection)
+def build_mesh_folder(
+    *,
+    root: str | Path,
+    held_out: str | Sequence[str] | None = None,
+    protocol: str | Mapping[str, Any] = "airplane",
+    seed: int = 0,
+    **selection,
+) -> ShapePairDataset:
+    """Pairs from any folder of meshes (:class:`MeshFolderShapes`; ``selection``: :class:`ShapeSelection`'s
+    fields; see the protocol)."""
+    return _shape_pairs(MeshFolderShapes(root, ShapeSelection(**selection), held_out), protocol, seed, "mesh_folder")
 
 
 @DATASETS.register("modelnet40")
-@keywords_of(ModelNet40Shapes)
-def build_modelnet40(*, protocol: str | Mapping[str, Any] = "airplane", seed: int = 0, **shapes) -> ShapePairDataset:
-    """Pairs from ModelNet40 shapes (``shapes``: :class:`ModelNet40Shapes`'s arguments; see the protocol)."""
-    return _shape_pairs(ModelNet40Shapes(**shapes), protocol, seed, "modelnet40")
+@keywords_of(ShapeSelection)
+def build_modelnet40(
+    *,
+    root: str | Path,
+    split: str = "train",
+    file_format: str = "auto",
+    protocol: str | Mapping[str, Any] = "airplane",
+    seed: int = 0,
+    **selection,
+) -> ShapePairDataset:
+    """Pairs from ModelNet40 shapes (:class:`ModelNet40Shapes`; ``split`` and ``selection``:
+    :class:`ShapeSelection`'s fields; see the protocol)."""
+    shapes = ModelNet40Shapes(root, ShapeSelection(split=split, **selection), file_format)
+    return _shape_pairs(shapes, protocol, seed, "modelnet40")

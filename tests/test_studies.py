@@ -177,3 +177,16 @@ def test_the_demo_pair_is_redkitchen_fragment_6_onto_fragment_0(shared_data):
     angle, centimetres = pose_gap(published[(0, 4)] @ published[(4, 6)], published[(0, 6)])
     assert angle < 0.01 and centimetres < 0.01  # one trajectory: the published poses chain exactly
     assert np.allclose(pose_gap(published[(0, 6)], published[(0, 6)]), 0.0, atol=1e-5)
+
+
+@pytest.mark.shared_data
+def test_finish_costs_adds_up_the_parts_of_the_finished_network(shared_data):
+    """The modelled time of the finished network is the sum of its parts, and the bound (every part
+    but the fallback's solver free) is never below the modelled ratio."""
+    from scripts.studies.finish_costs import costs
+
+    row = costs("rpm_ours_airplane", "rpm_ours_airplane", 2)
+    parts = row["forward"] + row["polish"] + row["check"] + row["fallback"] + row["wrap"]
+    assert row["finished"] == pytest.approx(parts) and row["ratio"] == pytest.approx(row["solver_way"] / parts)
+    assert 0.0 <= row["fallback_share"] <= 1.0 and row["bound"] >= row["ratio"] and row["share_for_target"] >= 0.0
+    assert min(row[name] for name in ("solver_way", "solver", "forward", "polish", "check")) > 0.0

@@ -1,0 +1,130 @@
+"""Where does the finished network's time go, and what bounds its throughput against the solver's?
+
+    python scripts/studies/finish_costs.py [--pairs 30] [--json]
+
+For each network on its own protocol's test pairs and on another protocol's (the sets of
+``bench_register.py --throughput``), seed 0, in one process on the machine as it is: the seconds per
+pair of ``register`` with the solver (what ``register_many`` does for the solver way: the noise and
+clutter tests, the solver, the check), and of each part of the finished network (``refine=true``):
+
+* the network's forward (:meth:`~linereg.registration.learned.LearnedRegistration.predict_many`, all
+  pairs in one batch: subsampling, normals, the model), its share per pair;
+* the polish of its pose (:meth:`~linereg.registration.learned.Finish.polish`);
+* the finish's check of the polished pose (the clutter test and
+  :func:`~linereg.registration.evaluation.assess_registration` on one KD-tree of the target);
+* the whole solver with its check, on the pairs whose polished pose the check does not trust (the
+  fallback), as a mean over all pairs;
+* ``register``'s own work around any method (the noise and clutter tests and the final check): the
+  solver way's time less the solver's.
+
+The model adds the parts; the throughput ratio is the solver way's time over it. "Bound" is the ratio
+if the forward, the polish and every check cost nothing: only the fallback's solver runs. The 3x of
+the learned-path targets needs the parts' sum under a third of the solver way's time.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import statistics
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
+
+SETS = (
+    ("rpm_ours_airplane", "rpm_ours_airplane"),
+    ("rpm_ours_real", "rpm_ours_real"),
+    ("rpm_ours_human", "rpm_ours_human"),
+    ("rpm_ours_airplane", "rpm_ours_human"),
+    ("rpm_ours_human", "rpm_ours_airplane"),
+)
+TARGET = 3.0
+"""The throughput ratio the learned-path targets ask of the finished network in its domain."""
+
+
+def _timed(function, *args):
+    """``(seconds, function(*args))``."""
+    start = time.perf_counter()
+    value = function(*args)
+    return time.perf_counter() - start, value
+
+
+def costs(network: str, owner: str, count: int) -> dict[str, float]:
+    """Seconds per pair of each part (module docstring) on ``count`` test pairs of ``owner``'s
+    protocol, the fallback share, the modelled ratio, its bound and the largest fallback share that
+    would leave 3x with the other parts as they are."""
+    from linereg import pretrained, register
+    from linereg.datasets.benchmark_pairs import run_pairs
+    from linereg.knn import NearestNeighbors
+    from linereg.registration.evaluation import assess_registration
+    from linereg.registration.learned import Finish, LearnedRegistration
+    from linereg.registration.trust import surface_points
+
+    pairs = run_pairs(run=str(pretrained.path(owner)), split="test", pairs=count, seed=0)
+    clouds = [(p.src_xyz.astype(np.float64), p.tgt_xyz.astype(np.float64)) for p in pairs]
+    learned, finish = LearnedRegistration(network), Finish()
+    learned.predict_many(clouds[:1])  # warm-up: the model loaded, the kernels compiled
+    register(*clouds[0])
+    forward, poses = _timed(learned.predict_many, clouds)
+    parts = {name: [] for name in ("solver_way", "solver", "polish", "check", "fallback")}
+    for (src, tgt), start in zip(clouds, poses, strict=True):
+        parts["solver_way"].append(_timed(register, src, tgt)[0])
+        parts["solver"].append(_timed(finish.solver, src, tgt)[0])
+        seconds, polished = _timed(finish.polish, src, tgt, start)
+        parts["polish"].append(seconds)
+
+        def check(transform, src=src, tgt=tgt):
+            index = NearestNeighbors(tgt)
+            surface = surface_points(tgt, src, target_index=index)
+            return assess_registration(src, tgt, transform, on_surface=surface, target_index=index)
+
+        seconds, judged = _timed(check, polished.transform)
+        parts["check"].append(seconds)
+        parts["fallback"].append(0.0 if judged.confident else parts["solver"][-1] + seconds)
+    row = {name: statistics.fmean(values) for name, values in parts.items()}
+    row["forward"] = forward / len(clouds)
+    row["wrap"] = row["solver_way"] - row["solver"]
+    row["fallback_share"] = float(np.mean([value > 0 for value in parts["fallback"]]))
+    finished = row["forward"] + row["polish"] + row["check"] + row["fallback"] + row["wrap"]
+    row["finished"] = finished
+    row["ratio"] = row["solver_way"] / finished
+    row["bound"] = row["solver_way"] / row["fallback"] if row["fallback"] > 0 else float("inf")
+    fixed = row["forward"] + row["polish"] + row["check"] + row["wrap"]
+    per_fallback = row["solver"] + row["check"]
+    row["share_for_target"] = max(row["solver_way"] / TARGET - fixed, 0.0) / per_fallback
+    return row
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--pairs", type=int, default=30, help="test pairs of each set (seed 0)")
+    parser.add_argument("--json", action="store_true", help="print the rows as JSON")
+    args = parser.parse_args(argv)
+    rows = {}
+    for network, owner in SETS:
+        name = f"{network} on {owner}'s test pairs"
+        rows[name] = costs(network, owner, args.pairs)
+        print(f"{name}: {rows[name]}", file=sys.stderr, flush=True)
+    if args.json:
+        print(json.dumps(rows))
+        return 0
+    print(
+        "| network, pairs | solver way (s) | forward | polish | check | fallback share | fallback solver "
+        "| register's own | finished (s) | ratio | bound | fallback share for 3x |"
+    )
+    print("|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
+    for name, r in rows.items():
+        print(
+            f"| {name} | {r['solver_way']:.3f} | {r['forward']:.3f} | {r['polish']:.3f} | {r['check']:.3f} "
+            f"| {r['fallback_share']:.2f} | {r['fallback']:.3f} | {r['wrap']:.3f} | {r['finished']:.3f} "
+            f"| {r['ratio']:.2f}x | {r['bound']:.2f}x | {r['share_for_target']:.2f} |"
+        )
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -190,3 +190,15 @@ def test_finish_costs_adds_up_the_parts_of_the_finished_network(shared_data):
     assert row["finished"] == pytest.approx(parts) and row["ratio"] == pytest.approx(row["solver_way"] / parts)
     assert 0.0 <= row["fallback_share"] <= 1.0 and row["bound"] >= row["ratio"] and row["share_for_target"] >= 0.0
     assert min(row[name] for name in ("solver_way", "solver", "forward", "polish", "check")) > 0.0
+
+
+@pytest.mark.shared_data
+def test_a_stricter_acceptance_never_keeps_more_polished_poses(shared_data):
+    """``--acceptance``: each rule adds a test to the check, so the solver runs at least as often as
+    under the check alone; the solver's own row runs it on every pair."""
+    from scripts.studies.finish_costs import RULES, acceptance
+
+    rows = acceptance("rpm_ours_airplane", "val", 3)
+    check, *stricter = (rows[name]["solver_ran"] for name in RULES)
+    assert all(check <= ran for ran in stricter) and rows["the solver alone"]["solver_ran"] == 1.0
+    assert all(row["err_r_deg_mean"] >= 0.0 for row in rows.values())

@@ -1,6 +1,7 @@
 """Where does the finished network's time go, and what bounds its throughput against the solver's?
 
     python scripts/studies/finish_costs.py [--pairs 30] [--json]
+    python scripts/studies/finish_costs.py --acceptance     # the accuracy side: stricter acceptance
 
 For each network on its own protocol's test pairs and on another protocol's (the sets of
 ``bench_register.py --throughput``), seed 0, in one process on the machine as it is: the seconds per
@@ -20,6 +21,11 @@ clutter tests, the solver, the check), and of each part of the finished network 
 The model adds the parts; the throughput ratio is the solver way's time over it. "Bound" is the ratio
 if the forward, the polish and every check cost nothing: only the fallback's solver runs. The 3x of
 the learned-path targets needs the parts' sum under a third of the solver way's time.
+
+With ``--acceptance``, the other side of the trade: the finished network's mean Err_R and how often
+the solver runs when the finish keeps a polished pose only if the check trusts it *and* it passes a
+stricter rule (:data:`RULES`), on the airplane and room networks' validation pairs (where a rule
+would be chosen) and test pairs, beside the solver's own mean Err_R on the same pairs.
 """
 
 from __future__ import annotations
@@ -44,6 +50,14 @@ SETS = (
 )
 TARGET = 3.0
 """The throughput ratio the learned-path targets ask of the finished network in its domain."""
+RULES = {
+    "the check (the finish's)": lambda judged: True,
+    "and inlier RMSE <= 1.0 sampling distances": lambda judged: judged.inlier_rmse <= judged.sampling_distance,
+    "and inlier share >= 0.9": lambda judged: judged.fitness >= 0.9,
+}
+"""Acceptance rules of a polished pose the check trusts, for ``--acceptance``."""
+ACCEPTANCE_SETS = (("rpm_ours_airplane", "val", 40), ("rpm_ours_airplane", "test", 30))
+ACCEPTANCE_SETS += (("rpm_ours_real", "val", 30), ("rpm_ours_real", "test", 30))
 
 
 def _timed(function, *args):
@@ -99,11 +113,67 @@ def costs(network: str, owner: str, count: int) -> dict[str, float]:
     return row
 
 
+def acceptance(network: str, split: str, count: int) -> dict[str, dict[str, float]]:
+    """Per rule of :data:`RULES` (and the solver alone): the mean Err_R of the finished network on
+    ``count`` pairs of ``network``'s protocol (``split``, seed 0) and the share of pairs the solver ran
+    on. The finish's fallback as it is: the solver's answer replaces the polished pose when the check
+    trusts it or it fits better (:func:`~linereg.registration.learned.fits_better`)."""
+    from linereg import pretrained
+    from linereg.datasets.benchmark_pairs import run_pairs
+    from linereg.registration.evaluation import assess_registration
+    from linereg.registration.learned import Finish, LearnedRegistration, fits_better
+    from linereg.registration.poses import rotation_gap_deg
+
+    pairs = run_pairs(run=str(pretrained.path(network)), split=split, pairs=count, seed=0)
+    clouds = [(p.src_xyz.astype(np.float64), p.tgt_xyz.astype(np.float64)) for p in pairs]
+    finish, found = Finish(), {name: [] for name in (*RULES, "the solver alone")}
+    for (src, tgt), start, pair in zip(clouds, LearnedRegistration(network).predict_many(clouds), pairs, strict=True):
+        truth = pair.gt_transform[:3, :3].astype(np.float64)
+
+        def error(transform, truth=truth):
+            return float(rotation_gap_deg(transform[:3, :3][None], truth)[0])
+
+        polished = finish.polish(src, tgt, start).transform
+        judged = assess_registration(src, tgt, polished)
+        solved = finish.solver(src, tgt).transform
+        solver_wins = assess_registration(src, tgt, solved).confident or fits_better(src, tgt, solved, polished)
+        fallback = solved if solver_wins else polished
+        for name, rule in RULES.items():
+            kept = judged.confident and rule(judged)
+            found[name].append((error(polished if kept else fallback), not kept))
+        found["the solver alone"].append((error(solved), True))
+    return {
+        name: {
+            "pairs": len(rows),
+            "err_r_deg_mean": statistics.fmean(e for e, _ in rows),
+            "solver_ran": statistics.fmean(r for _, r in rows),
+        }
+        for name, rows in found.items()
+    }
+
+
+def print_acceptance(rows: dict[str, dict[str, dict[str, float]]]) -> None:
+    """The ``--acceptance`` rows as a markdown table."""
+    print("| network, pairs | acceptance of a polished pose | pairs | Err_R mean (deg) | the solver ran |")
+    print("|---|---|---:|---:|---:|")
+    for pairs, rules in rows.items():
+        for name, row in rules.items():
+            print(f"| {pairs} | {name} | {row['pairs']} | {row['err_r_deg_mean']:.3f} | {row['solver_ran']:.2f} |")
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--pairs", type=int, default=30, help="test pairs of each set (seed 0)")
     parser.add_argument("--json", action="store_true", help="print the rows as JSON")
+    parser.add_argument("--acceptance", action="store_true", help="Err_R and solver runs of stricter acceptance rules")
     args = parser.parse_args(argv)
+    if args.acceptance:
+        found = {f"{net}, {split}": acceptance(net, split, count) for net, split, count in ACCEPTANCE_SETS}
+        if args.json:
+            print(json.dumps(found))
+        else:
+            print_acceptance(found)
+        return 0
     rows = {}
     for network, owner in SETS:
         name = f"{network} on {owner}'s test pairs"

@@ -6,6 +6,7 @@ from __future__ import annotations
 import re
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 
@@ -202,3 +203,28 @@ def test_a_stricter_acceptance_never_keeps_more_polished_poses(shared_data):
     check, *stricter = (rows[name]["solver_ran"] for name in RULES)
     assert all(check <= ran for ran in stricter) and rows["the solver alone"]["solver_ran"] == 1.0
     assert all(row["err_r_deg_mean"] >= 0.0 for row in rows.values())
+
+
+def test_check_trust_measures_the_method_it_is_given(monkeypatch):
+    """``check_trust.py --method ... --refine``: the pair is registered by that method, finished."""
+    from types import SimpleNamespace
+
+    import linereg
+    from scripts.studies import check_trust
+
+    calls = []
+    register = linereg.register
+
+    def spy(src, tgt, **options):
+        calls.append(options)
+        return register(src, tgt, method="icp_point")
+
+    monkeypatch.setattr(check_trust.linereg, "register", spy)
+    rng = np.random.default_rng(0)
+    cloud = rng.normal(size=(600, 3)) * [1.0, 0.6, 0.3]
+    pair = SimpleNamespace(src_xyz=cloud, tgt_xyz=cloud + 0.01, gt_transform=np.eye(4))
+    pair.gt_transform[:3, 3] = 0.01
+    row = check_trust.measure("airplane", 0, pair, "rpm_ours_objects", refine=True)
+    assert calls == [{"method": "rpm_ours_objects", "refine": True}]
+    assert row["right"] and row["source"] == "airplane" and isinstance(row["confident"], bool)
+    assert check_trust.measure("airplane", 0, pair)["right"] and calls[-1] == {"method": "robust"}

@@ -1,6 +1,7 @@
 """Does ``confident`` keep every benchmark pair it trusts when it also asks for chance, uniqueness and units?
 
     python scripts/studies/check_trust.py [--pairs 40] [--out outputs/studies/trust.jsonl]
+    python scripts/studies/check_trust.py --method rpm_ours_objects --refine   # the finished general model
 
 On the benchmark pairs of every source (seed 0, as ``linereg-benchmark`` draws them), ``register``'s
 answer is judged twice: by the inlier test alone
@@ -9,6 +10,9 @@ answer is judged twice: by the inlier test alone
 (the inlier test, a tight fitness above chance, no free motion, no symmetric rival). A pose is right
 when Err_R <= 2 deg and its translation error <= 2 % of the target's bounding-box diagonal. One
 JSON line per pair is appended to ``--out`` as it is measured; a rerun skips the pairs it holds.
+``--method`` answers with another method of ``register`` (a network by name or run folder), and
+``--refine`` finishes a network's poses with the solver (``refine=true``); the default ``--out`` then
+names the method.
 """
 
 from __future__ import annotations
@@ -42,12 +46,12 @@ SOURCES = {
 }
 
 
-def measure(name: str, index: int, pair) -> dict:
-    """``register``'s answer on ``pair`` with both verdicts."""
+def measure(name: str, index: int, pair, method: str = "robust", refine: bool = False) -> dict:
+    """``register``'s answer (``method``, finished with ``refine``) on ``pair`` with both verdicts."""
     src, tgt = pair.src_xyz.astype(np.float64), pair.tgt_xyz.astype(np.float64)
     truth = pair.gt_transform.astype(np.float64)
     truth[:3, :3] = nearest_rotation(truth[:3, :3])
-    result = linereg.register(src, tgt)
+    result = linereg.register(src, tgt, method=method, **({"refine": True} if refine else {}))
     transform = result.transformation
     quality, spacing, _, _ = inlier_test(src, tgt, transform)
     err_r = float(rotation_gap_deg(transform[None, :3, :3], truth[:3, :3])[0])
@@ -97,8 +101,13 @@ def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--pairs", type=int, default=40, help="pairs per object source (fragments: 48, 3dmatch: all)")
     parser.add_argument("--sources", nargs="*", default=list(SOURCES), choices=list(SOURCES))
-    parser.add_argument("--out", type=Path, default=Path("outputs/studies/trust.jsonl"))
+    parser.add_argument("--out", type=Path, help="the JSON lines (default: outputs/studies/trust[_<method>].jsonl)")
+    parser.add_argument("--method", default="robust", help="register's method: a name, a network or a run folder")
+    parser.add_argument("--refine", action="store_true", help="finish a network's poses with the solver")
     args = parser.parse_args(argv)
+    if args.out is None:
+        suffix = "" if args.method == "robust" else f"_{Path(args.method).name}{'_finished' if args.refine else ''}"
+        args.out = Path(f"outputs/studies/trust{suffix}.jsonl")
     args.out.parent.mkdir(parents=True, exist_ok=True)
     rows = [json.loads(line) for line in args.out.read_text().splitlines()] if args.out.exists() else []
     done = {(r["source"], r["pair"]) for r in rows}
@@ -107,7 +116,7 @@ def main(argv: list[str] | None = None) -> None:
         for index, pair in enumerate(select_pairs(SOURCES[name], pairs=count, seed=0)):
             if (name, index) in done:
                 continue
-            row = measure(name, index, pair)
+            row = measure(name, index, pair, args.method, args.refine)
             rows.append(row)
             with args.out.open("a") as stream:
                 stream.write(json.dumps(row) + "\n")

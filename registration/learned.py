@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import functools
 import time
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Any, NamedTuple
 
@@ -26,7 +26,7 @@ import numpy as np
 
 from linereg.fps import farthest_point_subset as fps
 from linereg.knn import NearestNeighbors
-from linereg.registration.evaluation import assess_registration
+from linereg.registration.evaluation import Assessment, assess_registration
 from linereg.registration.methods import METHODS, MethodResult, run_with_init, translation
 from linereg.registration.trust import soft_fitness, spacing_of, surface_points
 
@@ -201,16 +201,15 @@ class Finish:
         ``"polished network"`` or ``"solver"``, with ``"solver_ran"``."""
         began = time.perf_counter()
         polished = self.polish(src, tgt, start)
-        index = NearestNeighbors(tgt)  # one KD-tree and one clutter test of the target for both checks
-        surface = surface_points(tgt, src, target_index=index)
-        judged = assess_registration(src, tgt, polished.transform, on_surface=surface, target_index=index)
+        check = pose_check(src, tgt)
+        judged = check(polished.transform)
         info = {"solver_ran": False, "polished_confident": judged.confident}
         if judged.confident:
             seconds = time.perf_counter() - began
             info |= {"path": "polished network"}
             return MethodResult(polished.transform, seconds, {**polished.info, **info}, polished.solution)
         solved = self.solver(src, tgt)
-        rival = assess_registration(src, tgt, solved.transform, on_surface=surface, target_index=index)
+        rival = check(solved.transform)
         info["solver_ran"] = True
         solver_wins = rival.confident or fits_better(src, tgt, solved.transform, polished.transform)
         winner, path = (solved, "solver") if solver_wins else (polished, "polished network")
@@ -225,6 +224,15 @@ class Finish:
         polished = run_with_init(self.polisher, src, tgt - centroid, init=translation(-centroid) @ start)
         transform = translation(centroid) @ polished.transform
         return MethodResult(transform, polished.seconds, polished.info, polished.solution)
+
+
+def pose_check(src: np.ndarray, tgt: np.ndarray) -> Callable[[np.ndarray], Assessment]:
+    """``register``'s check (:func:`~linereg.registration.evaluation.assess_registration`) of poses
+    ``(4, 4)`` mapping ``src (N, 3)`` onto ``tgt (M, 3)``, the target's KD-tree and clutter test
+    (:func:`~linereg.registration.trust.surface_points`) made once for every pose it judges."""
+    index = NearestNeighbors(tgt)
+    surface = surface_points(tgt, src, target_index=index)
+    return functools.partial(assess_registration, src, tgt, on_surface=surface, target_index=index)
 
 
 @functools.lru_cache(maxsize=4)

@@ -28,7 +28,7 @@ from hydra import initialize_config_dir
 from hydra.core.global_hydra import GlobalHydra
 from hydra.types import RunMode
 
-from tests.test_config_cells import MACHINE, PATHS, SCHEDULE_SCRIPT, all_cells, flatten
+from tests.test_config_cells import MACHINE, PATHS, SCHEDULE_SCRIPT, all_cells, flatten, run_name
 
 ROOT = Path(__file__).resolve().parent.parent
 CONFIGS = ROOT / "configs"
@@ -119,7 +119,7 @@ def test_the_cell_alone_names_the_run():
     assert found["paper"]["task_name"] == ["cell/paper_none_rpm_ours.yaml"]
     for path in (CONFIGS / "cell").glob("*.yaml"):
         _, protocol, loss = path.stem.split("_", 2)
-        assert yaml.safe_load(path.read_text())["task_name"] == (loss if protocol == "none" else f"{loss}_{protocol}")
+        assert yaml.safe_load(path.read_text())["task_name"] == run_name([f"loss={loss}", f"protocol={protocol}"])
 
 
 def test_every_recipe_protocol_and_loss_has_its_cell_file():

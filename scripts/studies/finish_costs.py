@@ -41,13 +41,8 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
-SETS = (
-    ("rpm_ours_airplane", "rpm_ours_airplane"),
-    ("rpm_ours_real", "rpm_ours_real"),
-    ("rpm_ours_human", "rpm_ours_human"),
-    ("rpm_ours_airplane", "rpm_ours_human"),
-    ("rpm_ours_human", "rpm_ours_airplane"),
-)
+from scripts.studies.finish_fallback import SETS  # the same networks and pairs
+
 TARGET = 3.0
 """The throughput ratio the learned-path targets ask of the finished network in its domain."""
 RULES = {
@@ -67,16 +62,20 @@ def _timed(function, *args):
     return time.perf_counter() - start, value
 
 
+def _judged_once(src: np.ndarray, tgt: np.ndarray, transform: np.ndarray):
+    """The finish's check of one pose, its target's KD-tree and clutter test included."""
+    from linereg.registration.learned import pose_check
+
+    return pose_check(src, tgt)(transform)
+
+
 def costs(network: str, owner: str, count: int) -> dict[str, float]:
     """Seconds per pair of each part (module docstring) on ``count`` test pairs of ``owner``'s
     protocol, the fallback share, the modelled ratio, its bound and the largest fallback share that
     would leave 3x with the other parts as they are."""
     from linereg import pretrained, register
     from linereg.datasets.benchmark_pairs import run_pairs
-    from linereg.knn import NearestNeighbors
-    from linereg.registration.evaluation import assess_registration
     from linereg.registration.learned import Finish, LearnedRegistration
-    from linereg.registration.trust import surface_points
 
     pairs = run_pairs(run=str(pretrained.path(owner)), split="test", pairs=count, seed=0)
     clouds = [(p.src_xyz.astype(np.float64), p.tgt_xyz.astype(np.float64)) for p in pairs]
@@ -90,13 +89,7 @@ def costs(network: str, owner: str, count: int) -> dict[str, float]:
         parts["solver"].append(_timed(finish.solver, src, tgt)[0])
         seconds, polished = _timed(finish.polish, src, tgt, start)
         parts["polish"].append(seconds)
-
-        def check(transform, src=src, tgt=tgt):
-            index = NearestNeighbors(tgt)
-            surface = surface_points(tgt, src, target_index=index)
-            return assess_registration(src, tgt, transform, on_surface=surface, target_index=index)
-
-        seconds, judged = _timed(check, polished.transform)
+        seconds, judged = _timed(_judged_once, src, tgt, polished.transform)
         parts["check"].append(seconds)
         parts["fallback"].append(0.0 if judged.confident else parts["solver"][-1] + seconds)
     row = {name: statistics.fmean(values) for name, values in parts.items()}
@@ -120,8 +113,7 @@ def acceptance(network: str, split: str, count: int) -> dict[str, dict[str, floa
     trusts it or it fits better (:func:`~linereg.registration.learned.fits_better`)."""
     from linereg import pretrained
     from linereg.datasets.benchmark_pairs import run_pairs
-    from linereg.registration.evaluation import assess_registration
-    from linereg.registration.learned import Finish, LearnedRegistration, fits_better
+    from linereg.registration.learned import Finish, LearnedRegistration, fits_better, pose_check
     from linereg.registration.poses import rotation_gap_deg
 
     pairs = run_pairs(run=str(pretrained.path(network)), split=split, pairs=count, seed=0)
@@ -133,10 +125,10 @@ def acceptance(network: str, split: str, count: int) -> dict[str, dict[str, floa
         def error(transform, truth=truth):
             return float(rotation_gap_deg(transform[:3, :3][None], truth)[0])
 
-        polished = finish.polish(src, tgt, start).transform
-        judged = assess_registration(src, tgt, polished)
+        polished, check = finish.polish(src, tgt, start).transform, pose_check(src, tgt)
+        judged = check(polished)
         solved = finish.solver(src, tgt).transform
-        solver_wins = assess_registration(src, tgt, solved).confident or fits_better(src, tgt, solved, polished)
+        solver_wins = check(solved).confident or fits_better(src, tgt, solved, polished)
         fallback = solved if solver_wins else polished
         for name, rule in RULES.items():
             kept = judged.confident and rule(judged)

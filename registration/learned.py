@@ -198,19 +198,21 @@ class Finish:
         (:func:`~linereg.registration.evaluation.assess_registration`) does not trust it, the whole
         solver from scratch, whose answer replaces the polished one when the check trusts it, or
         when neither is trusted and it fits better (:func:`fits_better`). ``info["path"]``:
-        ``"polished network"`` or ``"solver"``, with ``"solver_ran"``."""
+        ``"polished network"`` or ``"solver"``, with ``"solver_ran"``, and the seconds of the polish
+        with its check (``"polish_seconds"``) and of the solver with its check (``"solver_seconds"``,
+        0 when it did not run)."""
         began = time.perf_counter()
         polished = self.polish(src, tgt, start)
         check = pose_check(src, tgt)
         judged = check(polished.transform)
-        info = {"solver_ran": False, "polished_confident": judged.confident}
+        polished_at = time.perf_counter()
+        info = {"solver_ran": False, "polished_confident": judged.confident, "polish_seconds": polished_at - began}
         if judged.confident:
-            seconds = time.perf_counter() - began
-            info |= {"path": "polished network"}
-            return MethodResult(polished.transform, seconds, {**polished.info, **info}, polished.solution)
+            info |= {"path": "polished network", "solver_seconds": 0.0}
+            return MethodResult(polished.transform, polished_at - began, {**polished.info, **info}, polished.solution)
         solved = self.solver(src, tgt)
         rival = check(solved.transform)
-        info["solver_ran"] = True
+        info |= {"solver_ran": True, "solver_seconds": time.perf_counter() - polished_at}
         solver_wins = rival.confident or fits_better(src, tgt, solved.transform, polished.transform)
         winner, path = (solved, "solver") if solver_wins else (polished, "polished network")
         seconds = time.perf_counter() - began

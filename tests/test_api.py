@@ -310,6 +310,50 @@ def test_register_many_answers_in_order_as_register_does(pair, checkpoint):
     assert rotation_error_deg(solved[1].transformation, other) < 0.5
 
 
+def test_register_many_drops_a_network_that_costs_more_than_it_saves(pair, checkpoint, monkeypatch):
+    """A network 120 degrees off on every pair: each falls back to the solver, so its path costs more
+    than the solver's; after the probe the remaining pairs go straight to the solver, as right."""
+    from linereg.registration import learned, many
+
+    src, tgt, T = pair
+    far = pose([120.0, 30.0, 0.0], [0.3, 0.0, 0.0]) @ T
+    forwards = []
+
+    def counting(self, pairs, *args, **kwargs):
+        forwards.append(len(pairs))
+        return _network_answering(far)(self, pairs)
+
+    monkeypatch.setattr(learned.LearnedRegistration, "predict_many", counting)
+    monkeypatch.setattr(many, "PROBE_PAIRS", 2)
+    run = list(linereg.register_many([(src, tgt)] * 4, method=checkpoint, refine=True, batch_size=2, progress=False))
+    assert forwards == [2]
+    assert [result.info.get("network_skipped", False) for result in run] == [False, False, True, True]
+    assert all(result.info["path"] == "solver" and result.info["solver_ran"] for result in run)
+    assert all(rotation_error_deg(result.transformation, T) < 0.5 and result.confident for result in run)
+    kept = linereg.register_many(
+        [(src, tgt)] * 4, method=checkpoint, refine=True, batch_size=2, progress=False, keep_network=True
+    )
+    assert not any(result.info.get("network_skipped") for result in kept) and forwards == [2, 2, 2]
+
+
+def test_the_network_ledger_compares_the_networks_path_with_the_solvers():
+    from linereg.registration.many import PROBE_PAIRS, NetworkLedger
+
+    def finished(polish: float, solver: float) -> dict:
+        return {"polish_seconds": polish, "solver_seconds": solver, "solver_ran": solver > 0}
+
+    trusted = NetworkLedger()
+    for _ in range(PROBE_PAIRS + 2):
+        trusted.record(0.5, finished(0.5, 0.0))
+    assert not trusted.slower()  # no pair fell back: the solver's time is unknown, the network stays
+    mixed, costly = NetworkLedger(), NetworkLedger()
+    for index in range(PROBE_PAIRS):
+        mixed.record(0.05, finished(0.05, 1.0 if index % 4 == 0 else 0.0))  # 0.35 s a pair against 1 s
+        costly.record(0.1, finished(0.05, 0.2 if index % 2 else 0.0))  # 0.25 s a pair against 0.2 s
+        assert not costly.slower() or index == PROBE_PAIRS - 1
+    assert not mixed.slower() and costly.slower()
+
+
 def test_register_many_names_the_bad_pair(pair):
     src, tgt, _ = pair
     with pytest.raises(ValueError, match=r"pairs\[1\] target"):

@@ -308,6 +308,27 @@ def test_the_robust_solver_runs_in_numpy_on_the_cpu_and_refuses_other_devices(tm
     assert not (tmp_path / "run").exists()
 
 
+def test_keep_network_reaches_register_many(tmp_path, monkeypatch):
+    """``pairs=<folder> keep_network=true``: the folder's pairs reach ``register_many`` with it."""
+    from linereg.registration import many
+    from linereg.train.register import _register_pairs
+
+    folder = tmp_path / "pairs"
+    folder.mkdir()
+    write_point_cloud(folder / "a_src.ply", surface(200, 0))
+    write_point_cloud(folder / "a_tgt.ply", surface(200, 0))
+    seen, register_many = {}, many.register_many
+
+    def recording(pairs, **kwargs):
+        seen.update(kwargs)
+        return register_many(pairs, **kwargs)
+
+    monkeypatch.setattr(many, "register_many", recording)
+    for keep in (False, True):
+        _register_pairs(_compose(pairs=folder, method="icp_point", keep_network=keep), tmp_path / f"run{keep}")
+        assert seen["keep_network"] is keep
+
+
 def test_a_folder_of_pairs_goes_into_one_table_and_resumes(tmp_path, capsys):
     """``pairs=<folder>``: one row per pair in name order, errors where ground truth exists; a rerun
     in the same run folder registers only the pairs the table lacks."""

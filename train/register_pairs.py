@@ -3,7 +3,8 @@
 The folder holds ``<name>_src.<ext>`` and ``<name>_tgt.<ext>`` files, and ``<name>_gt.txt`` for
 every pair or for none (:class:`~linereg.datasets.pairs_folder.FolderPairs` finds them). The pairs
 run through :func:`linereg.register_many` (a network's forward in batches; ``refine=true`` finishes
-its poses with the solver) in name order, and each result is appended to ``results.csv`` in the run
+its poses with the solver, and drops the network where it costs more than the solver alone unless
+``keep_network=true``) in name order, and each result is appended to ``results.csv`` in the run
 folder as it comes: the name, the 16 numbers of the transform (row-major), ``fitness``,
 ``inlier_rmse``, ``confident``, ``seconds``, the ``path`` taken (a network's: ``network``,
 ``polished network`` or ``solver``; ``method`` for any other method), the ``warnings`` (joined by
@@ -61,6 +62,7 @@ def register_folder(cfg: DictConfig, out_dir: Path, method: Any) -> dict[str, An
         device=cfg.device,
         fitness_threshold=cfg.fitness_threshold,
         progress=cfg.progress,
+        keep_network=cfg.keep_network,
         **options,
     )
     confident = 0

@@ -16,6 +16,7 @@ network costs time where the solver's answer fits better.
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import time
 from collections.abc import Callable, Mapping, Sequence
@@ -48,6 +49,12 @@ off reaches the basin; coarse steps first would leave poses trusted that are wro
 Both chosen on the Airplane protocol's validation views (``scripts/studies/finish_polish.py``)."""
 
 
+FINISH_ITERATIONS = 2
+"""RPM-Net's iterations when the solver finishes its pose (its own: 5). After 2 the polish trusts the
+same poses at the same errors on the Airplane and Real protocols' validation views, at about 0.4x the
+forward (``scripts/studies/finish_costs.py --iterations``)."""
+
+
 class _Prepared(NamedTuple):
     """One pair as the network reads it: FPS subsets in its cube, their normals, and the maps back
     (the clouds' centroids, then ``x' = (x - center) * scale``)."""
@@ -78,7 +85,10 @@ class LearnedRegistration:
         num_points: points per cloud fed to the model (``None``: the run's ``trainer.num_points``).
         refine: finish the network's pose with the solver (:class:`Finish`); a mapping gives
             :class:`~linereg.registration.robust.RobustOptions` fields of both the polish and the
-            solver (numpy, on the CPU whatever ``device``).
+            solver (numpy, on the CPU whatever ``device``). RPM-Net then runs
+            :data:`FINISH_ITERATIONS` iterations.
+        iterations: the model's iterations in evaluation mode (RPM-Net's and FMR's ``test_iters``;
+            ``None``: the model's own, or :data:`FINISH_ITERATIONS` for RPM-Net with ``refine``).
     """
 
     def __init__(
@@ -88,12 +98,19 @@ class LearnedRegistration:
         device: str | Any = "cpu",
         num_points: int | None = None,
         refine: bool | Mapping[str, Any] = False,
+        iterations: int | None = None,
     ) -> None:
         import torch
 
+        from linereg.models.rpmnet import RPMNet
         from linereg.registration.iterates import IterateRule
 
         self.model, state = _loaded(str(checkpoint), str(device))
+        if iterations is None and refine and isinstance(self.model, RPMNet):
+            iterations = FINISH_ITERATIONS
+        if iterations is not None and (iterations < 1 or not hasattr(self.model, "test_iters")):
+            raise ValueError(f"iterations={iterations}: needs a model with iterations (RPM-Net, FMR) and >= 1")
+        self.iterations = iterations
         self.device = torch.device(device)
         self.checkpoint = state["path"]
         self.iterate = IterateRule.from_config(state["config"].get("iterate"))
@@ -150,7 +167,7 @@ class LearnedRegistration:
             src_normals=stacked("src_normals"),
             tgt_normals=stacked("tgt_normals"),
         ).to(self.device)
-        with torch.no_grad():
+        with torch.no_grad(), _test_iterations(self.model, self.iterations):
             output = self.model(batch)
             chosen, _ = self.iterate.select(output.transforms, batch.src_xyz, batch.tgt_xyz)
         return chosen.double().cpu().numpy()
@@ -168,6 +185,8 @@ class LearnedRegistration:
             "iterate": self.iterate.as_config(),
             "network_transform": network.tolist(),
         }
+        if self.iterations is not None:
+            info["iterations"] = self.iterations
         if self.finish is None:
             return MethodResult(transform=network, seconds=seconds, info={**info, "path": "network"})
         finished = self.finish(np.asarray(src, np.float64), np.asarray(tgt, np.float64), network)
@@ -235,6 +254,20 @@ def pose_check(src: np.ndarray, tgt: np.ndarray) -> Callable[[np.ndarray], Asses
     index = NearestNeighbors(tgt)
     surface = surface_points(tgt, src, target_index=index)
     return functools.partial(assess_registration, src, tgt, on_surface=surface, target_index=index)
+
+
+@contextlib.contextmanager
+def _test_iterations(model, iterations: int | None):
+    """``model`` running ``iterations`` iterations in evaluation mode within the block (``None``: its
+    own); the model is shared by every :class:`LearnedRegistration` of its checkpoint in the process."""
+    if iterations is None:
+        yield
+        return
+    own, model.test_iters = model.test_iters, iterations
+    try:
+        yield
+    finally:
+        model.test_iters = own
 
 
 @functools.lru_cache(maxsize=4)

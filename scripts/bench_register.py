@@ -44,7 +44,8 @@ and the finished network (``refine=True``: as ``register_many`` runs it, the net
 path costs more than the solver's, and on every pair, ``keep_network=True``), as pairs per second with
 their mean Err_R, confident share and, for the finished network, how often the solver ran;
 ``--pairs-of <network>`` takes the test pairs of that network's protocol instead (pairs the timed
-network never trained on).
+network never trained on). The ways run in ``--repeats`` rounds (3), the order reversed every other
+round; each ratio is the median over rounds of the round's ratio to the solver.
 
 With ``--baseline <checkout>`` the same command of another checkout of linereg (another version)
 is timed beside it, on the same pairs, in the same run, the two taking turns run by run (which of them
@@ -331,11 +332,13 @@ def measure_scans(pairs: list[ScanPair], folder: Path, repeats: int, baseline: P
     return rows
 
 
-def throughput(network: str, count: int, pairs_of: str | None = None) -> dict[str, dict[str, float]]:
+def throughput(network: str, count: int, pairs_of: str | None = None, rounds: int = 3) -> dict[str, dict[str, float]]:
     """``register_many`` on ``count`` test pairs of ``network``'s protocol (of ``pairs_of``'s: pairs
-    the network never trained on), in one process: per way (``solver``, ``network``, ``finished
-    network``), pairs per second, mean and max Err_R, the confident share, its precision (confident
-    answers within 5 degrees) and how often the solver ran."""
+    the network never trained on), in one process, ``rounds`` times (the ways' order reversed every
+    other round): per way (``solver``, ``network``, ``finished network`` with and without
+    ``keep_network``), pairs per second (the median round), its ratio to the solver's (the median over
+    rounds of the round's ratio), and from the first round the mean and max Err_R, the confident share,
+    its precision (confident answers within 5 degrees) and how often the solver ran."""
     from linereg import pretrained, register_many
     from linereg.datasets.benchmark_pairs import run_pairs
 
@@ -350,25 +353,32 @@ def throughput(network: str, count: int, pairs_of: str | None = None) -> dict[st
         "finished network, every pair": {**finished, "keep_network": True},
         "finished network": finished,
     }
-    rows = {}
-    for way, options in ways.items():
+    for options in ways.values():
         list(register_many(clouds[:1], progress=False, **options))  # warm-up: imports, the model loaded
-        start = time.perf_counter()
-        results = list(register_many(clouds, progress=False, **options))
-        seconds = time.perf_counter() - start
-        errors = np.array(
-            [_rotation_error(r.transformation, p.gt_transform) for r, p in zip(results, pairs, strict=True)]
-        )
-        confident = np.array([r.confident for r in results])
-        rows[way] = {
-            "pairs_per_s": len(pairs) / seconds,
-            "err_r_deg_mean": float(errors.mean()),
-            "err_r_deg_max": float(errors.max()),
-            "confident_share": float(confident.mean()),
-            "confident_precision": float((confident & (errors <= 5.0)).sum() / max(confident.sum(), 1)),
-            "solver_ran_share": float(np.mean([r.info.get("solver_ran", way == "solver") for r in results])),
-        }
-    return rows
+    rows, seconds = {}, {way: [] for way in ways}
+    for round_ in range(rounds):
+        for way in list(ways)[:: -1 if round_ % 2 else 1]:
+            start = time.perf_counter()
+            results = list(register_many(clouds, progress=False, **ways[way]))
+            seconds[way].append(time.perf_counter() - start)
+            rows.setdefault(way, _throughput_row(way, results, pairs))
+    for way in ways:
+        rows[way]["pairs_per_s"] = len(pairs) / statistics.median(seconds[way])
+        rows[way]["vs_solver"] = paired_ratio(seconds["solver"], seconds[way])
+    return {way: rows[way] for way in ways}
+
+
+def _throughput_row(way: str, results: list, pairs: list) -> dict[str, float]:
+    """Err_R, the confident share, its precision and how often the solver ran, of one way's ``results``."""
+    errors = np.array([_rotation_error(r.transformation, p.gt_transform) for r, p in zip(results, pairs, strict=True)])
+    confident = np.array([r.confident for r in results])
+    return {
+        "err_r_deg_mean": float(errors.mean()),
+        "err_r_deg_max": float(errors.max()),
+        "confident_share": float(confident.mean()),
+        "confident_precision": float((confident & (errors <= 5.0)).sum() / max(confident.sum(), 1)),
+        "solver_ran_share": float(np.mean([r.info.get("solver_ran", way == "solver") for r in results])),
+    }
 
 
 def _rotation_error(transform: np.ndarray, truth: np.ndarray) -> float:
@@ -377,7 +387,6 @@ def _rotation_error(transform: np.ndarray, truth: np.ndarray) -> float:
 
 def print_throughput(network: str, rows: dict[str, dict[str, float]], pairs_of: str | None = None) -> None:
     """The ``--throughput`` table, ratios against the solver."""
-    solver = rows["solver"]["pairs_per_s"]
     pairs = f"the test pairs of {pairs_of}'s protocol" if pairs_of else "its protocol's test pairs"
     print(f"{network}: {pairs}, one process, {os.cpu_count()} CPUs\n")
     print("| way | pairs / s | vs the solver | Err_R mean (max), deg | confident | precision | solver ran |")
@@ -385,7 +394,7 @@ def print_throughput(network: str, rows: dict[str, dict[str, float]], pairs_of: 
     for way, row in rows.items():
         precision = f"{row['confident_precision']:.2f}" if row["confident_share"] else "-"
         print(
-            f"| {way} | {row['pairs_per_s']:.2f} | {row['pairs_per_s'] / solver:.2f}x "
+            f"| {way} | {row['pairs_per_s']:.2f} | {row['vs_solver']:.2f}x "
             f"| {row['err_r_deg_mean']:.2f} ({row['err_r_deg_max']:.1f}) | {row['confident_share']:.2f} "
             f"| {precision} | {row['solver_ran_share']:.2f} |"
         )
@@ -450,7 +459,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--json", action="store_true")
     parser.add_argument("--compare", type=json.loads, help='method config (JSON) to time beside, e.g. {"name": "fgr"}')
     parser.add_argument("--scans", action="store_true", help="time real room scans: the command vs fpfh_ransac")
-    parser.add_argument("--repeats", type=int, default=2, help="runs of each command with --scans")
+    parser.add_argument("--repeats", type=int, help="--scans: runs of each command (2); --throughput: rounds (3)")
     parser.add_argument("--fragments", type=int, default=16, help="room-fragment pairs with --scans (4 bins)")
     parser.add_argument("--fragment-points", type=int, default=100_000, help="points of each fragment with --scans")
     parser.add_argument("--baseline", type=Path, help="another checkout of linereg whose command is timed beside")
@@ -460,7 +469,8 @@ def main(argv: list[str] | None = None) -> int:
     if args.pairs_of is not None and args.throughput is None:
         parser.error("--pairs-of needs --throughput")
     if args.throughput is not None:
-        print_throughput(args.throughput, throughput(args.throughput, args.pairs, args.pairs_of), args.pairs_of)
+        rows = throughput(args.throughput, args.pairs, args.pairs_of, args.repeats or 3)
+        print_throughput(args.throughput, rows, args.pairs_of)
         return 0
     if args.baseline is not None and not (args.baseline / "train" / "register.py").is_file():
         parser.error(f"--baseline {args.baseline}: not a checkout of linereg (no train/register.py)")
@@ -472,13 +482,13 @@ def main(argv: list[str] | None = None) -> int:
     if args.scans:
         with tempfile.TemporaryDirectory() as folder:
             pairs = scan_pairs(data, Path(folder), args.fragments, args.fragment_points)
-            rows = measure_scans(pairs, Path(folder), args.repeats, args.baseline)
+            rows = measure_scans(pairs, Path(folder), args.repeats or 2, args.baseline)
         if not rows:
             parser.error(f"no scan pair was found under {data}")
         if args.json:
             print(json.dumps({"pairs": rows, "paths": path_summary(rows)}))
         else:
-            print_scans(rows, args.repeats)
+            print_scans(rows, args.repeats or 2)
         return 0
     pairs = partial_vs_whole_pairs(
         data / "modelnet40_normal_resampled", pairs=args.pairs + 1, seed=0, patterns=["airplane/*.txt"]

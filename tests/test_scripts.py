@@ -48,9 +48,10 @@ def test_bench_register_pairs_of_needs_the_throughput(capsys):
 def test_bench_register_throughput_on_pairs_the_network_never_saw(shared_data, capsys):
     """The Human network on two of the Airplane protocol's test views: every way answers both pairs."""
     module = importlib.import_module("scripts.bench_register")
-    rows = module.throughput("rpm_ours_human", 2, pairs_of="rpm_ours_airplane")
+    rows = module.throughput("rpm_ours_human", 2, pairs_of="rpm_ours_airplane", rounds=2)
     assert list(rows) == ["solver", "network", "finished network, every pair", "finished network"]
     assert all(row["pairs_per_s"] > 0 and 0.0 <= row["confident_share"] <= 1.0 for row in rows.values())
+    assert rows["solver"]["vs_solver"] == 1.0 and all(row["vs_solver"] > 0 for row in rows.values())
     module.print_throughput("rpm_ours_human", rows, "rpm_ours_airplane")
     assert "the test pairs of rpm_ours_airplane's protocol" in capsys.readouterr().out
 

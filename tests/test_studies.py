@@ -205,6 +205,40 @@ def test_a_stricter_acceptance_never_keeps_more_polished_poses(shared_data):
     assert all(row["err_r_deg_mean"] >= 0.0 for row in rows.values())
 
 
+@pytest.mark.shared_data
+def test_the_iterations_study_runs_the_network_at_each_count(shared_data, monkeypatch):
+    """``--iterations``: one row per count, each forward at that count (the model's own restored after)."""
+    from linereg.registration.learned import LearnedRegistration
+    from scripts.studies import finish_costs
+
+    monkeypatch.setattr(finish_costs, "ITERATIONS", (5, 1))
+    rows = finish_costs.iterations("rpm_ours_airplane", "val", 2)
+    assert list(rows) == [5, 1] and all(0 <= row["trusted"] <= row["pairs"] == 2 for row in rows.values())
+    assert rows[1]["forward_s"] < rows[5]["forward_s"]
+    assert LearnedRegistration("rpm_ours_airplane").model.test_iters == 5
+
+
+def test_the_finish_runs_fewer_network_iterations(monkeypatch):
+    """RPM-Net finished by the solver runs :data:`FINISH_ITERATIONS`; bare, its own; a count asked for wins."""
+    import torch
+
+    from linereg.models.rpmnet import RPMNet
+    from linereg.registration import learned
+
+    model = RPMNet(num_neighbors=8).eval()
+    seen = []
+    forward = RPMNet.forward
+    monkeypatch.setattr(RPMNet, "forward", lambda self, batch: seen.append(self.test_iters) or forward(self, batch))
+    state = {"path": "m.pt", "config": {"trainer": {"num_points": 32}}, "half_extent": None}
+    monkeypatch.setattr(learned, "_loaded", lambda checkpoint, device: (model, state))
+    cloud = torch.rand(64, 3, generator=torch.Generator().manual_seed(0)).double().numpy()
+    for options, count in (({}, 5), ({"refine": True}, learned.FINISH_ITERATIONS), ({"iterations": 3}, 3)):
+        learned.LearnedRegistration("m.pt", **options).predict_many([(cloud, cloud)])
+        assert seen[-1] == count and model.test_iters == 5
+    with pytest.raises(ValueError, match="iterations=0"):
+        learned.LearnedRegistration("m.pt", iterations=0)
+
+
 def test_check_trust_measures_the_method_it_is_given(monkeypatch):
     """``check_trust.py --method ... --refine``: the pair is registered by that method, finished."""
     from types import SimpleNamespace

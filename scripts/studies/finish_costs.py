@@ -2,6 +2,7 @@
 
     python scripts/studies/finish_costs.py [--pairs 30] [--json]
     python scripts/studies/finish_costs.py --acceptance     # the accuracy side: stricter acceptance
+    python scripts/studies/finish_costs.py --iterations     # RPM-Net's iterations before the polish
 
 For each network on its own protocol's test pairs and on another protocol's (the sets of
 ``bench_register.py --throughput``), seed 0, in one process on the machine as it is: the seconds per
@@ -26,6 +27,11 @@ With ``--acceptance``, the other side of the trade: the finished network's mean 
 the solver runs when the finish keeps a polished pose only if the check trusts it *and* it passes a
 stricter rule (:data:`RULES`), on the airplane and room networks' validation pairs (where a rule
 would be chosen) and test pairs, beside the solver's own mean Err_R on the same pairs.
+
+With ``--iterations``, on the same pairs: per count of RPM-Net's iterations (:data:`ITERATIONS`), the
+forward's seconds per pair (the median of 3 forwards of all the pairs, after one more), the bare
+network's mean Err_R, how many polished poses the check trusts and their mean and largest Err_R
+(:data:`~linereg.registration.learned.FINISH_ITERATIONS` is chosen on the validation pairs).
 """
 
 from __future__ import annotations
@@ -53,6 +59,8 @@ RULES = {
 """Acceptance rules of a polished pose the check trusts, for ``--acceptance``."""
 ACCEPTANCE_SETS = (("rpm_ours_airplane", "val", 40), ("rpm_ours_airplane", "test", 30))
 ACCEPTANCE_SETS += (("rpm_ours_real", "val", 30), ("rpm_ours_real", "test", 30))
+ITERATIONS = (5, 3, 2, 1)
+"""RPM-Net's iterations tried by ``--iterations`` (the shipped networks' own: 5)."""
 
 
 def _timed(function, *args):
@@ -75,11 +83,12 @@ def costs(network: str, owner: str, count: int) -> dict[str, float]:
     would leave 3x with the other parts as they are."""
     from linereg import pretrained, register
     from linereg.datasets.benchmark_pairs import run_pairs
-    from linereg.registration.learned import Finish, LearnedRegistration
+    from linereg.registration.learned import LearnedRegistration
 
     pairs = run_pairs(run=str(pretrained.path(owner)), split="test", pairs=count, seed=0)
     clouds = [(p.src_xyz.astype(np.float64), p.tgt_xyz.astype(np.float64)) for p in pairs]
-    learned, finish = LearnedRegistration(network), Finish()
+    learned = LearnedRegistration(network, refine=True)  # the finish's forward
+    finish = learned.finish
     learned.predict_many(clouds[:1])  # warm-up: the model loaded, the kernels compiled
     register(*clouds[0])
     forward, poses = _timed(learned.predict_many, clouds)
@@ -119,7 +128,8 @@ def acceptance(network: str, split: str, count: int) -> dict[str, dict[str, floa
     pairs = run_pairs(run=str(pretrained.path(network)), split=split, pairs=count, seed=0)
     clouds = [(p.src_xyz.astype(np.float64), p.tgt_xyz.astype(np.float64)) for p in pairs]
     finish, found = Finish(), {name: [] for name in (*RULES, "the solver alone")}
-    for (src, tgt), start, pair in zip(clouds, LearnedRegistration(network).predict_many(clouds), pairs, strict=True):
+    starts = LearnedRegistration(network, refine=True).predict_many(clouds)  # the finish's forward
+    for (src, tgt), start, pair in zip(clouds, starts, pairs, strict=True):
         truth = pair.gt_transform[:3, :3].astype(np.float64)
 
         def error(transform, truth=truth):
@@ -144,6 +154,58 @@ def acceptance(network: str, split: str, count: int) -> dict[str, dict[str, floa
     }
 
 
+def iterations(network: str, split: str, count: int) -> dict[int, dict[str, float]]:
+    """Per count of :data:`ITERATIONS`, on ``count`` pairs of ``network``'s protocol (``split``, seed 0):
+    the forward's seconds per pair, the bare network's mean Err_R, the polished poses the check trusts
+    and their mean and largest Err_R."""
+    from linereg import pretrained
+    from linereg.checks import nearest_rotation
+    from linereg.datasets.benchmark_pairs import run_pairs
+    from linereg.registration.learned import Finish, LearnedRegistration, pose_check
+    from linereg.registration.poses import rotation_gap_deg
+
+    pairs = run_pairs(run=str(pretrained.path(network)), split=split, pairs=count, seed=0)
+    clouds = [(p.src_xyz.astype(np.float64), p.tgt_xyz.astype(np.float64)) for p in pairs]
+    truths = [nearest_rotation(p.gt_transform[:3, :3].astype(np.float64)) for p in pairs]
+
+    def errors(poses):
+        return np.array(
+            [rotation_gap_deg(pose[:3, :3][None], truth)[0] for pose, truth in zip(poses, truths, strict=True)]
+        )
+
+    finish, rows = Finish(), {}
+    for count_of_iterations in ITERATIONS:
+        learned = LearnedRegistration(network, iterations=count_of_iterations)
+        learned.predict_many(clouds)  # warm-up: the batch's shapes
+        timed = [_timed(learned.predict_many, clouds) for _ in range(3)]
+        seconds, starts = statistics.median(seconds for seconds, _ in timed), timed[0][1]
+        polished = [finish.polish(src, tgt, start).transform for (src, tgt), start in zip(clouds, starts, strict=True)]
+        trusted = [pose_check(src, tgt)(pose).confident for (src, tgt), pose in zip(clouds, polished, strict=True)]
+        kept = errors(polished)[np.array(trusted)]
+        rows[count_of_iterations] = {
+            "pairs": len(clouds),
+            "forward_s": seconds / len(clouds),
+            "network_err_r_deg": float(errors(starts).mean()),
+            "trusted": int(sum(trusted)),
+            "trusted_err_r_deg_mean": float(kept.mean()) if len(kept) else float("nan"),
+            "trusted_err_r_deg_max": float(kept.max()) if len(kept) else float("nan"),
+        }
+    return rows
+
+
+def print_iterations(rows: dict[str, dict[int, dict[str, float]]]) -> None:
+    """The ``--iterations`` rows as a markdown table."""
+    print("| network, pairs | iterations | forward (s / pair) | network Err_R | trusted polished | their Err_R (max) |")
+    print("|---|---:|---:|---:|---:|---|")
+    for pairs, counts in rows.items():
+        for count, r in counts.items():
+            print(
+                f"| {pairs} | {count} | {r['forward_s']:.3f} | {r['network_err_r_deg']:.2f} "
+                f"| {r['trusted']} / {r['pairs']} "
+                f"| {r['trusted_err_r_deg_mean']:.3f} ({r['trusted_err_r_deg_max']:.2f}) |"
+            )
+
+
 def print_acceptance(rows: dict[str, dict[str, dict[str, float]]]) -> None:
     """The ``--acceptance`` rows as a markdown table."""
     print("| network, pairs | acceptance of a polished pose | pairs | Err_R mean (deg) | the solver ran |")
@@ -158,13 +220,15 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--pairs", type=int, default=30, help="test pairs of each set (seed 0)")
     parser.add_argument("--json", action="store_true", help="print the rows as JSON")
     parser.add_argument("--acceptance", action="store_true", help="Err_R and solver runs of stricter acceptance rules")
+    parser.add_argument("--iterations", action="store_true", help="RPM-Net's iterations before the finish's polish")
     args = parser.parse_args(argv)
-    if args.acceptance:
-        found = {f"{net}, {split}": acceptance(net, split, count) for net, split, count in ACCEPTANCE_SETS}
+    if args.iterations or args.acceptance:
+        study, show = (iterations, print_iterations) if args.iterations else (acceptance, print_acceptance)
+        found = {f"{net}, {split}": study(net, split, count) for net, split, count in ACCEPTANCE_SETS}
         if args.json:
             print(json.dumps(found))
         else:
-            print_acceptance(found)
+            show(found)
         return 0
     rows = {}
     for network, owner in SETS:

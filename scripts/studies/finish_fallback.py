@@ -52,7 +52,8 @@ def untrusted_pairs(network: str, owner: str, split: str, count: int) -> list[di
     pairs = run_pairs(run=str(pretrained.path(owner)), split=split, pairs=count, seed=0)
     clouds = [(p.src_xyz.astype(np.float64), p.tgt_xyz.astype(np.float64)) for p in pairs]
     finish, rows = Finish(), []
-    for (src, tgt), start, pair in zip(clouds, LearnedRegistration(network).predict_many(clouds), pairs, strict=True):
+    starts = LearnedRegistration(network, refine=True).predict_many(clouds)  # the finish's forward
+    for (src, tgt), start, pair in zip(clouds, starts, pairs, strict=True):
         polished = finish.polish(src, tgt, start).transform
         if assess_registration(src, tgt, polished).confident:
             continue

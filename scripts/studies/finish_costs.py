@@ -121,6 +121,7 @@ def acceptance(network: str, split: str, count: int) -> dict[str, dict[str, floa
     on. The finish's fallback as it is: the solver's answer replaces the polished pose when the check
     trusts it or it fits better (:func:`~linereg.registration.learned.fits_better`)."""
     from linereg import pretrained
+    from linereg.checks import nearest_rotation
     from linereg.datasets.benchmark_pairs import run_pairs
     from linereg.registration.learned import Finish, LearnedRegistration, fits_better, pose_check
     from linereg.registration.poses import rotation_gap_deg
@@ -130,7 +131,7 @@ def acceptance(network: str, split: str, count: int) -> dict[str, dict[str, floa
     finish, found = Finish(), {name: [] for name in (*RULES, "the solver alone")}
     starts = LearnedRegistration(network, refine=True).predict_many(clouds)  # the finish's forward
     for (src, tgt), start, pair in zip(clouds, starts, pairs, strict=True):
-        truth = pair.gt_transform[:3, :3].astype(np.float64)
+        truth = nearest_rotation(pair.gt_transform[:3, :3].astype(np.float64))  # stored: float32, scaled by ~1e-4
 
         def error(transform, truth=truth):
             return float(rotation_gap_deg(transform[:3, :3][None], truth)[0])

@@ -191,6 +191,7 @@ def test_finish_costs_adds_up_the_parts_of_the_finished_network(shared_data):
     assert row["finished"] == pytest.approx(parts) and row["ratio"] == pytest.approx(row["solver_way"] / parts)
     assert 0.0 <= row["fallback_share"] <= 1.0 and row["bound"] >= row["ratio"] and row["share_for_target"] >= 0.0
     assert min(row[name] for name in ("solver_way", "solver", "forward", "polish", "check")) > 0.0
+    assert 0.0 <= row["truth_trusted"] <= 1.0 and row["perfect_ratio"] > 0.0
 
 
 @pytest.mark.shared_data

@@ -21,7 +21,10 @@ clutter tests, the solver, the check), and of each part of the finished network 
 
 The model adds the parts; the throughput ratio is the solver way's time over it. "Bound" is the ratio
 if the forward, the polish and every check cost nothing: only the fallback's solver runs. The 3x of
-the learned-path targets needs the parts' sum under a third of the solver way's time.
+the learned-path targets needs the parts' sum under a third of the solver way's time. "Truth trusted"
+is the share of pairs whose ground-truth pose, polished as the finish polishes a network's, the check
+trusts, and "perfect network" the ratio of a network that always answered the truth: it still falls
+back on every other pair.
 
 With ``--acceptance``, the other side of the trade: the finished network's mean Err_R and how often
 the solver runs when the finish keeps a polished pose only if the check trusts it *and* it passes a
@@ -79,9 +82,12 @@ def _judged_once(src: np.ndarray, tgt: np.ndarray, transform: np.ndarray):
 
 def costs(network: str, owner: str, count: int) -> dict[str, float]:
     """Seconds per pair of each part (module docstring) on ``count`` test pairs of ``owner``'s
-    protocol, the fallback share, the modelled ratio, its bound and the largest fallback share that
-    would leave 3x with the other parts as they are."""
+    protocol, the fallback share, the modelled ratio, its bound, the largest fallback share that
+    would leave 3x with the other parts as they are, and the share of pairs whose ground-truth pose,
+    polished as the finish polishes, the check trusts, with the ratio of a network that always answered
+    the truth (it falls back elsewhere)."""
     from linereg import pretrained, register
+    from linereg.checks import nearest_rotation
     from linereg.datasets.benchmark_pairs import run_pairs
     from linereg.registration.learned import LearnedRegistration
 
@@ -93,7 +99,11 @@ def costs(network: str, owner: str, count: int) -> dict[str, float]:
     register(*clouds[0])
     forward, poses = _timed(learned.predict_many, clouds)
     parts = {name: [] for name in ("solver_way", "solver", "polish", "check", "fallback")}
-    for (src, tgt), start in zip(clouds, poses, strict=True):
+    truth_trusted = []
+    for (src, tgt), start, pair in zip(clouds, poses, pairs, strict=True):
+        truth = pair.gt_transform.astype(np.float64)
+        truth[:3, :3] = nearest_rotation(truth[:3, :3])
+        truth_trusted.append(_judged_once(src, tgt, finish.polish(src, tgt, truth).transform).confident)
         parts["solver_way"].append(_timed(register, src, tgt)[0])
         parts["solver"].append(_timed(finish.solver, src, tgt)[0])
         seconds, polished = _timed(finish.polish, src, tgt, start)
@@ -112,6 +122,8 @@ def costs(network: str, owner: str, count: int) -> dict[str, float]:
     fixed = row["forward"] + row["polish"] + row["check"] + row["wrap"]
     per_fallback = row["solver"] + row["check"]
     row["share_for_target"] = max(row["solver_way"] / TARGET - fixed, 0.0) / per_fallback
+    row["truth_trusted"] = float(np.mean(truth_trusted))
+    row["perfect_ratio"] = row["solver_way"] / (fixed + (1.0 - row["truth_trusted"]) * per_fallback)
     return row
 
 
@@ -241,14 +253,15 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     print(
         "| network, pairs | solver way (s) | forward | polish | check | fallback share | fallback solver "
-        "| register's own | finished (s) | ratio | bound | fallback share for 3x |"
+        "| register's own | finished (s) | ratio | bound | fallback share for 3x | truth trusted | perfect network |"
     )
-    print("|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
+    print("|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
     for name, r in rows.items():
         print(
             f"| {name} | {r['solver_way']:.3f} | {r['forward']:.3f} | {r['polish']:.3f} | {r['check']:.3f} "
             f"| {r['fallback_share']:.2f} | {r['fallback']:.3f} | {r['wrap']:.3f} | {r['finished']:.3f} "
-            f"| {r['ratio']:.2f}x | {r['bound']:.2f}x | {r['share_for_target']:.2f} |"
+            f"| {r['ratio']:.2f}x | {r['bound']:.2f}x | {r['share_for_target']:.2f} | {r['truth_trusted']:.2f} "
+            f"| {r['perfect_ratio']:.2f}x |"
         )
     return 0
 

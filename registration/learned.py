@@ -51,7 +51,7 @@ Both chosen on the Airplane protocol's validation views (``scripts/studies/finis
 
 FINISH_ITERATIONS = 2
 """RPM-Net's iterations when the solver finishes its pose (its own: 5). After 2 the polish trusts the
-same poses at the same errors on the Airplane and Real protocols' validation views, at about 0.4x the
+same poses at the same errors on the Airplane and Real protocols' validation views, at 0.5-0.6x the
 forward (``scripts/studies/finish_costs.py --iterations``)."""
 
 

@@ -79,7 +79,7 @@ def register_many(
 
     bar = tqdm(total=total, desc="register", unit="pair", disable=not progress)
     iterator, done = iter(pairs), 0
-    size = min(batch_size, PROBE_PAIRS) if ledger else batch_size
+    size = min(batch_size, PROBE_PAIRS) if ledger is not None else batch_size
     try:
         while chunk := list(itertools.islice(iterator, size)):
             size = batch_size

@@ -67,7 +67,7 @@ import sys
 import tempfile
 import time
 from pathlib import Path
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
@@ -107,10 +107,10 @@ def _env(root: Path = ROOT) -> dict[str, str]:
     return dict(os.environ, PYTHONPATH=os.pathsep.join([str(root), os.environ.get("PYTHONPATH", "")]))
 
 
-def _turn(roots: tuple[Path, ...], run: int) -> list[tuple[int, Path]]:
-    """``(number, root)`` of each checkout in the order of run ``run``: as given on even runs, reversed
-    on odd ones (neither checkout always runs first, right after the other's)."""
-    numbered = list(enumerate(roots))
+def _turn(items: tuple, run: int) -> list[tuple[int, Any]]:
+    """``(number, item)`` of each of ``items`` (checkouts, ways) in the order of run ``run``: as given on
+    even runs, reversed on odd ones (none always runs first, right after another)."""
+    numbered = list(enumerate(items))
     return numbered if run % 2 == 0 else numbered[::-1]
 
 
@@ -357,7 +357,7 @@ def throughput(network: str, count: int, pairs_of: str | None = None, rounds: in
         list(register_many(clouds[:1], progress=False, **options))  # warm-up: imports, the model loaded
     rows, seconds = {}, {way: [] for way in ways}
     for round_ in range(rounds):
-        for way in list(ways)[:: -1 if round_ % 2 else 1]:
+        for _, way in _turn(tuple(ways), round_):
             start = time.perf_counter()
             results = list(register_many(clouds, progress=False, **ways[way]))
             seconds[way].append(time.perf_counter() - start)

@@ -40,6 +40,7 @@ network's mean Err_R, how many polished poses the check trusts and their mean an
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import statistics
 import sys
@@ -80,19 +81,41 @@ def _judged_once(src: np.ndarray, tgt: np.ndarray, transform: np.ndarray):
     return pose_check(src, tgt)(transform)
 
 
+def _labelled_pairs(owner: str, split: str, count: int) -> tuple[list, list[np.ndarray]]:
+    """``count`` pairs of ``owner``'s protocol (``split``, seed 0) as float64 ``(src, tgt)`` clouds, and
+    their ``(4, 4)`` ground truths made rigid (stored in float32, the Real protocol's rotations scaled
+    by about 1e-4, which the arccos of :func:`_err_r` would read as a degree or more)."""
+    from linereg import pretrained
+    from linereg.checks import nearest_rotation
+    from linereg.datasets.benchmark_pairs import run_pairs
+
+    pairs = run_pairs(run=str(pretrained.path(owner)), split=split, pairs=count, seed=0)
+    clouds = [(p.src_xyz.astype(np.float64), p.tgt_xyz.astype(np.float64)) for p in pairs]
+    truths = []
+    for pair in pairs:
+        truth = pair.gt_transform.astype(np.float64)
+        truth[:3, :3] = nearest_rotation(truth[:3, :3])
+        truths.append(truth)
+    return clouds, truths
+
+
+def _err_r(transform: np.ndarray, truth: np.ndarray) -> float:
+    """Err_R (degrees) of ``transform (4, 4)`` against ``truth (4, 4)``."""
+    from linereg.registration.poses import rotation_gap_deg
+
+    return float(rotation_gap_deg(transform[None, :3, :3], truth[:3, :3])[0])
+
+
 def costs(network: str, owner: str, count: int) -> dict[str, float]:
     """Seconds per pair of each part (module docstring) on ``count`` test pairs of ``owner``'s
     protocol, the fallback share, the modelled ratio, its bound, the largest fallback share that
     would leave 3x with the other parts as they are, and the share of pairs whose ground-truth pose,
     polished as the finish polishes, the check trusts, with the ratio of a network that always answered
     the truth (it falls back elsewhere)."""
-    from linereg import pretrained, register
-    from linereg.checks import nearest_rotation
-    from linereg.datasets.benchmark_pairs import run_pairs
+    from linereg import register
     from linereg.registration.learned import LearnedRegistration
 
-    pairs = run_pairs(run=str(pretrained.path(owner)), split="test", pairs=count, seed=0)
-    clouds = [(p.src_xyz.astype(np.float64), p.tgt_xyz.astype(np.float64)) for p in pairs]
+    clouds, truths = _labelled_pairs(owner, "test", count)
     learned = LearnedRegistration(network, refine=True)  # the finish's forward
     finish = learned.finish
     learned.predict_many(clouds[:1])  # warm-up: the model loaded, the kernels compiled
@@ -100,9 +123,7 @@ def costs(network: str, owner: str, count: int) -> dict[str, float]:
     forward, poses = _timed(learned.predict_many, clouds)
     parts = {name: [] for name in ("solver_way", "solver", "polish", "check", "fallback")}
     truth_trusted = []
-    for (src, tgt), start, pair in zip(clouds, poses, pairs, strict=True):
-        truth = pair.gt_transform.astype(np.float64)
-        truth[:3, :3] = nearest_rotation(truth[:3, :3])
+    for (src, tgt), start, truth in zip(clouds, poses, truths, strict=True):
         truth_trusted.append(_judged_once(src, tgt, finish.polish(src, tgt, truth).transform).confident)
         parts["solver_way"].append(_timed(register, src, tgt)[0])
         parts["solver"].append(_timed(finish.solver, src, tgt)[0])
@@ -132,22 +153,13 @@ def acceptance(network: str, split: str, count: int) -> dict[str, dict[str, floa
     ``count`` pairs of ``network``'s protocol (``split``, seed 0) and the share of pairs the solver ran
     on. The finish's fallback as it is: the solver's answer replaces the polished pose when the check
     trusts it or it fits better (:func:`~linereg.registration.learned.fits_better`)."""
-    from linereg import pretrained
-    from linereg.checks import nearest_rotation
-    from linereg.datasets.benchmark_pairs import run_pairs
     from linereg.registration.learned import Finish, LearnedRegistration, fits_better, pose_check
-    from linereg.registration.poses import rotation_gap_deg
 
-    pairs = run_pairs(run=str(pretrained.path(network)), split=split, pairs=count, seed=0)
-    clouds = [(p.src_xyz.astype(np.float64), p.tgt_xyz.astype(np.float64)) for p in pairs]
+    clouds, truths = _labelled_pairs(network, split, count)
     finish, found = Finish(), {name: [] for name in (*RULES, "the solver alone")}
     starts = LearnedRegistration(network, refine=True).predict_many(clouds)  # the finish's forward
-    for (src, tgt), start, pair in zip(clouds, starts, pairs, strict=True):
-        truth = nearest_rotation(pair.gt_transform[:3, :3].astype(np.float64))  # stored: float32, scaled by ~1e-4
-
-        def error(transform, truth=truth):
-            return float(rotation_gap_deg(transform[:3, :3][None], truth)[0])
-
+    for (src, tgt), start, truth in zip(clouds, starts, truths, strict=True):
+        error = functools.partial(_err_r, truth=truth)
         polished, check = finish.polish(src, tgt, start).transform, pose_check(src, tgt)
         judged = check(polished)
         solved = finish.solver(src, tgt).transform
@@ -171,20 +183,12 @@ def iterations(network: str, split: str, count: int) -> dict[int, dict[str, floa
     """Per count of :data:`ITERATIONS`, on ``count`` pairs of ``network``'s protocol (``split``, seed 0):
     the forward's seconds per pair, the bare network's mean Err_R, the polished poses the check trusts
     and their mean and largest Err_R."""
-    from linereg import pretrained
-    from linereg.checks import nearest_rotation
-    from linereg.datasets.benchmark_pairs import run_pairs
     from linereg.registration.learned import Finish, LearnedRegistration, pose_check
-    from linereg.registration.poses import rotation_gap_deg
 
-    pairs = run_pairs(run=str(pretrained.path(network)), split=split, pairs=count, seed=0)
-    clouds = [(p.src_xyz.astype(np.float64), p.tgt_xyz.astype(np.float64)) for p in pairs]
-    truths = [nearest_rotation(p.gt_transform[:3, :3].astype(np.float64)) for p in pairs]
+    clouds, truths = _labelled_pairs(network, split, count)
 
     def errors(poses):
-        return np.array(
-            [rotation_gap_deg(pose[:3, :3][None], truth)[0] for pose, truth in zip(poses, truths, strict=True)]
-        )
+        return np.array([_err_r(pose, truth) for pose, truth in zip(poses, truths, strict=True)])
 
     finish, rows = Finish(), {}
     for count_of_iterations in ITERATIONS:
